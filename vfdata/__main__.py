@@ -1,0 +1,3 @@
+from vfdata.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""One module per `vfdata` subcommand; each defines `register(subparsers)`."""

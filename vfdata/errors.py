@@ -1,0 +1,32 @@
+"""Named exceptions. Every user-facing failure is one of these, rendered by the CLI as one line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class VisionForceError(Exception):
+    """Base class: a problem the user can fix, reported as one line without a traceback."""
+
+
+class InputError(VisionForceError):
+    """A bad input file or folder: names the path and the problem."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+class FormatError(InputError):
+    """An MCAP file that does not follow the VisionForce layout, or is damaged."""
+
+
+class BackendError(VisionForceError):
+    """An unknown backend, or a backend whose model, code or checkpoint is not available."""
+
+
+class OutputExistsError(VisionForceError):
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        super().__init__(f"{path}: output exists (pass --overwrite to replace it)")
