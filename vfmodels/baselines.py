@@ -1,0 +1,127 @@
+"""The paper's two image baselines, with the same output as the proposed model: forces (B, T, 3) per
+frame in normalised units.
+
+- `RGBResNet3D`: torchvision's 3D ResNet-18 (`r3d_18`) on monocular (left) RGB clips.
+- `DepthViTLSTM`: a ViT-Small (timm `vit_small_patch16_224`, one input channel) per frame on the
+  tissue-masked depth image, then the same causal LSTM and heads as the proposed model.
+
+The paper starts both from pretrained weights. Those cannot be downloaded here, so each model takes
+`weights_path` (a local file) and otherwise starts from random initialisation; `initialisation` records
+which, and training logs it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vfdata.errors import BackendError
+from vfmodels.decoder import CausalForceDecoder, ForceHeads
+
+# Kinetics-400 statistics that torchvision's pretrained video models expect (RGB, in [0, 1]).
+KINETICS_MEAN = (0.43216, 0.394666, 0.37645)
+KINETICS_STD = (0.22803, 0.22145, 0.216989)
+
+
+def _load_state_dict(path: str | Path, what: str) -> dict[str, torch.Tensor]:
+    """A state dict from a local checkpoint file (plain, or wrapped in "state_dict"/"model")."""
+    path = Path(path)
+    if not path.is_file():
+        raise BackendError(f"{path}: {what} weights file not found (pass weights_path=null for random init)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a damaged or non-PyTorch file: say which one
+        raise BackendError(f"{path}: cannot read {what} weights ({exc})") from exc
+    for key in ("state_dict", "model"):
+        if isinstance(state, dict) and isinstance(state.get(key), dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise BackendError(f"{path}: not a state dict of {what} weights")
+    return state
+
+
+class RGBResNet3D(nn.Module):
+    """RGB clips (B, T, 3, H, W), uint8 0-255 or float 0-1 -> forces (B, T, 3).
+
+    r3d_18's stem and four stages give features at T/8 time steps; they are averaged over space,
+    interpolated back to the T frames and passed to one head per force component. 3D convolutions
+    see both neighbours in time, so unlike the proposed model this baseline is not causal.
+    """
+
+    input_key = "images"
+    channel_dim = 2
+
+    def __init__(self, weights_path: str | None = None, head_hidden: int = 64):
+        super().__init__()
+        from torchvision.models.video import r3d_18
+
+        self.config = dict(weights_path=weights_path, head_hidden=head_hidden)
+        backbone = r3d_18(weights=None)
+        if weights_path:
+            state = {k: v for k, v in _load_state_dict(weights_path, "r3d_18").items() if not k.startswith("fc.")}
+            missing, unexpected = backbone.load_state_dict(state, strict=False)
+            missing = [k for k in missing if not k.startswith("fc.")]
+            if missing or unexpected:
+                raise BackendError(
+                    f"{weights_path}: not r3d_18 weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
+                )
+        self.initialisation = f"pretrained:{weights_path}" if weights_path else "random"
+        self.features = nn.Sequential(
+            backbone.stem, backbone.layer1, backbone.layer2, backbone.layer3, backbone.layer4
+        )
+        self.heads = ForceHeads(512, head_hidden)
+        self.register_buffer("mean", torch.tensor(KINETICS_MEAN).view(1, 3, 1, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(KINETICS_STD).view(1, 3, 1, 1, 1), persistent=False)
+
+    def forward(self, images: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        t = images.shape[1]
+        x = images.float() / 255.0 if images.dtype == torch.uint8 else images
+        x = (x.transpose(1, 2) - self.mean) / self.std  # (B, 3, T, H, W)
+        f = self.features(x).mean(dim=(3, 4))  # (B, 512, T')
+        f = F.interpolate(f, size=t, mode="linear", align_corners=False)
+        return self.heads(f.transpose(1, 2))
+
+
+class DepthViTLSTM(nn.Module):
+    """Masked depth clips (B, T, 1, H, W) (normalised; background = the normalised value of 0 mm) ->
+    forces (B, T, 3). ViT-Small's class token per frame (384) -> causal LSTM (192) -> three heads.
+
+    H and W must equal `img_size`. Pretrained RGB ViT weights are adapted to one channel by summing
+    the patch-embedding filters over RGB, and the position embedding is resampled to `img_size`.
+    """
+
+    input_key = "depth"
+    channel_dim = 2
+
+    def __init__(self, weights_path: str | None = None, img_size: int = 224, lstm_hidden: int = 192):
+        super().__init__()
+        import timm
+        from timm.models import adapt_input_conv
+        from timm.models.vision_transformer import checkpoint_filter_fn
+
+        self.config = dict(weights_path=weights_path, img_size=img_size, lstm_hidden=lstm_hidden)
+        self.vit = timm.create_model(
+            "vit_small_patch16_224", pretrained=False, in_chans=1, num_classes=0, img_size=img_size
+        )
+        if weights_path:
+            state = _load_state_dict(weights_path, "vit_small_patch16_224")
+            state = {k: v for k, v in state.items() if not k.startswith("head.")}
+            weight = state.get("patch_embed.proj.weight")
+            if weight is not None and weight.shape[1] != 1:
+                state["patch_embed.proj.weight"] = adapt_input_conv(1, weight)
+            state = checkpoint_filter_fn(state, self.vit)
+            missing, unexpected = self.vit.load_state_dict(state, strict=False)
+            if missing or unexpected:
+                raise BackendError(
+                    f"{weights_path}: not ViT-Small/16 weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
+                )
+        self.initialisation = f"pretrained:{weights_path}" if weights_path else "random"
+        self.decoder = CausalForceDecoder(self.vit.num_features, lstm_hidden)
+
+    def forward(self, depth: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        b, t = depth.shape[:2]
+        z = self.vit(depth.flatten(0, 1).float()).view(b, t, -1)
+        return self.decoder(z)

@@ -1,0 +1,234 @@
+"""`ForceRegressor`, the LightningModule around any force model: normalisation, MSE loss on
+normalised forces, AdamW, and the paper's metrics at validation and test. It knows nothing about
+files; batches follow the contract below, and normalisation statistics come from the datamodule.
+
+Batch (a dict): the model's input under `model.input_key` ("tokens" (B, T, N, C), "images"
+(B, T, 3, H, W) or "depth" (B, T, 1, H, W)), `valid` (B, T, N) bool (optional), `force` (B, T, 3) in
+N, `orientation_deg` (B,), `recording` list[str], `frame_time_ns` (B, T) int64.
+
+Models: an `nn.Module` with `forward(x, valid) -> (B, T, 3)` in normalised units, attributes
+`input_key`, `channel_dim` (the input's feature axis, which the input statistics apply to) and
+`config` (its constructor arguments as plain values, stored in checkpoints).
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_info
+from torch import nn
+
+from vfdata.errors import InputError
+from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
+
+STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
+
+
+class ForceRegressor(L.LightningModule):
+    """Trains `model` to regress per-frame forces; see the module docstring for the batch contract.
+
+    Normalisation statistics (`input_mean`/`input_std` over the input's feature axis, `force_mean`/
+    `force_std` (3,) in N) are buffers: they are taken from `trainer.datamodule.normalisation` (a
+    dict of those four tensors, from the training split) when fitting starts, are saved in every
+    checkpoint and restored with it. Without statistics the inputs and forces pass unchanged.
+
+    `compile_model=True` runs the model through `torch.compile` (state-dict keys are unchanged).
+    """
+
+    def __init__(self, model: nn.Module, lr: float = 5e-4, weight_decay: float = 1e-3, compile_model: bool = False):
+        super().__init__()
+        self.save_hyperparameters(ignore=["model"])
+        self.model = model
+        for name in STAT_NAMES:
+            self.register_buffer(name, torch.empty(0))
+        # Buffers start empty; a checkpoint's statistics replace them whatever their shape.
+        self.register_load_state_dict_pre_hook(self._adopt_stat_shapes)
+        self._compiled = None
+        self._outputs: dict[str, list] = {}
+        self.test_results: dict[str, Any] | None = None
+
+    # ---- normalisation -------------------------------------------------------------------------
+
+    def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
+        for name in STAT_NAMES:
+            if prefix + name in state_dict:
+                setattr(self, name, torch.empty_like(state_dict[prefix + name], device=self.force_mean.device))
+
+    def set_normalisation(
+        self, input_mean: torch.Tensor, input_std: torch.Tensor, force_mean: torch.Tensor, force_std: torch.Tensor
+    ) -> None:
+        """Statistics from the training split: input ones over the model input's feature axis, force
+        ones (3,) in N. Standard deviations must be positive."""
+        values = dict(input_mean=input_mean, input_std=input_std, force_mean=force_mean, force_std=force_std)
+        for name, value in values.items():
+            value = torch.as_tensor(value, dtype=torch.float32).reshape(-1).to(self.force_mean.device)
+            if name.endswith("std") and bool((value <= 0).any()):
+                raise ValueError(f"{name} must be positive, got {value.tolist()}")
+            setattr(self, name, value)
+
+    def setup(self, stage: str) -> None:
+        stats = getattr(getattr(self.trainer, "datamodule", None), "normalisation", None)
+        # When fitting, the training split defines the statistics; otherwise a checkpoint restored
+        # after setup brings its own, and the datamodule's only fill in for an untrained model.
+        if stats is not None and (stage == "fit" or self.force_mean.numel() == 0):
+            self.set_normalisation(**stats)
+        if self.hparams.compile_model and self._compiled is None:
+            self._compiled = torch.compile(self.model)
+
+    def normalise_input(self, x: torch.Tensor) -> torch.Tensor:
+        if self.input_mean.numel() == 0:
+            return x.float()
+        shape = [1] * x.ndim
+        shape[self.model.channel_dim] = -1
+        return (x.float() - self.input_mean.view(shape)) / self.input_std.view(shape)
+
+    def normalise_force(self, force_n: torch.Tensor) -> torch.Tensor:
+        return force_n if self.force_mean.numel() == 0 else (force_n - self.force_mean) / self.force_std
+
+    def denormalise_force(self, force: torch.Tensor) -> torch.Tensor:
+        return force if self.force_mean.numel() == 0 else force * self.force_std + self.force_mean
+
+    # ---- forward and loss ----------------------------------------------------------------------
+
+    def forward(self, batch: dict[str, Any]) -> torch.Tensor:
+        """Normalised force predictions (B, T, 3)."""
+        model = self._compiled if self._compiled is not None else self.model
+        return model(self.normalise_input(batch[self.model.input_key]), batch.get("valid"))
+
+    def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
+        """Forces (B, T, 3) in N."""
+        return self.denormalise_force(self(batch))
+
+    def _loss(self, pred: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
+        # Frames without a force sample (NaN) take no part in the loss.
+        target = self.normalise_force(force_n.float())
+        known = torch.isfinite(target)
+        return F.mse_loss(pred[known], target[known])
+
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
+        loss = self._loss(self(batch), batch["force"])
+        self.log("train/loss", loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=len(batch["force"]))
+        return loss
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
+        self._evaluate(batch, "val")
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int) -> None:
+        self._evaluate(batch, "test")
+
+    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
+        """{"force_n": (B, T, 3) in N, "recording": [...], "frame_time_ns": (B, T)} (CPU tensors)."""
+        return {
+            "force_n": self.predict_forces(batch).float().cpu(),
+            "recording": list(batch.get("recording", [])),
+            "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
+        }
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+
+    # ---- metrics -------------------------------------------------------------------------------
+
+    def _evaluate(self, batch: dict[str, Any], split: str) -> None:
+        pred = self(batch)
+        force_n = batch["force"]
+        b, t = force_n.shape[:2]
+        self.log(f"{split}/loss", self._loss(pred, force_n), on_epoch=True, prog_bar=True, batch_size=b,
+                 sync_dist=True)
+        out = self._outputs.setdefault(split, [])
+        orientation = batch.get("orientation_deg", torch.zeros(b))
+        out.append(dict(
+            pred_n=self.denormalise_force(pred).detach().float().cpu().numpy().reshape(-1, 3),
+            true_n=force_n.detach().float().cpu().numpy().reshape(-1, 3),
+            orientation_deg=np.repeat(torch.as_tensor(orientation).cpu().numpy(), t),
+            recording=np.repeat(np.asarray(batch.get("recording", [""] * b), dtype=object), t),
+            frame_time_ns=(batch["frame_time_ns"].cpu().numpy().reshape(-1) if "frame_time_ns" in batch
+                           else np.full(b * t, -1, dtype=np.int64)),
+            position=np.tile(np.arange(t), b),
+        ))
+
+    def _collect(self, split: str) -> dict[str, np.ndarray] | None:
+        parts = self._outputs.pop(split, [])
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            gathered: list[list] = [None] * torch.distributed.get_world_size()  # type: ignore[list-item]
+            torch.distributed.all_gather_object(gathered, parts)
+            parts = [p for rank_parts in gathered for p in rank_parts]
+        if not parts:
+            return None
+        frames = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        # Clips overlap, so a frame may be predicted several times. Keep each frame once, from the
+        # clip where it had the most history (the latest position), as a causal online estimator would.
+        if (frames["frame_time_ns"] >= 0).all():
+            order = np.lexsort((-frames["position"], frames["frame_time_ns"], frames["recording"].astype(str)))
+            key = np.stack([frames["recording"].astype(str)[order], frames["frame_time_ns"][order].astype(str)])
+            first = np.ones(len(order), dtype=bool)
+            first[1:] = (key[:, 1:] != key[:, :-1]).any(axis=0)
+            frames = {k: v[order[first]] for k, v in frames.items()}
+        known = np.isfinite(frames["true_n"]).all(axis=1)
+        return {k: v[known] for k, v in frames.items()}
+
+    def on_validation_epoch_end(self) -> None:
+        frames = self._collect("val")
+        if frames is None or self.trainer.sanity_checking or len(frames["true_n"]) < 2:
+            return
+        metrics = force_metrics(frames["pred_n"], frames["true_n"])
+        self.log_dict({f"val/{k}": v for k, v in metrics.items()}, sync_dist=False)
+
+    def on_test_epoch_end(self) -> None:
+        frames = self._collect("test")
+        if frames is None or len(frames["true_n"]) < 2:
+            return
+        result = grouped_force_metrics(frames["pred_n"], frames["true_n"], frames["orientation_deg"])
+        logged = {f"test/{k}": v for k, v in result["pooled"].items()}
+        if len(result["groups"]) > 1:
+            logged.update({f"test/mean/{k}": v for k, v in result["mean"].items()})
+            logged.update({f"test/std/{k}": v for k, v in result["std"].items()})
+        self.log_dict(logged, sync_dist=False)
+        self.test_results = result
+        rank_zero_info(f"test: {len(frames['true_n'])} frames, orientations (deg) "
+                       f"{sorted(result['groups'])}\n{format_table(result)}")
+
+    # ---- checkpoints ---------------------------------------------------------------------------
+
+    def on_fit_start(self) -> None:
+        initialisation = getattr(self.model, "initialisation", "random")
+        rank_zero_info(f"{type(self.model).__name__}: initialisation {initialisation}")
+        if self.logger is not None:
+            self.logger.log_hyperparams({"model_class": type(self.model).__name__, "initialisation": initialisation})
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # Enough to rebuild the model without the training config (see `load`); plain values only,
+        # so the checkpoint loads with torch.load(weights_only=True).
+        cls = type(self.model)
+        checkpoint["force_model"] = {
+            "class_path": f"{cls.__module__}.{cls.__qualname__}",
+            "init_args": dict(getattr(self.model, "config", {})),
+            "initialisation": getattr(self.model, "initialisation", "random"),
+        }
+
+    @classmethod
+    def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
+        """A trained regressor from a checkpoint file alone (weights_only load), in eval mode.
+        Pretrained-weight files named in the model config are not needed: the checkpoint has the weights."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "checkpoint not found")
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+        spec = checkpoint.get("force_model")
+        if spec is None:
+            raise InputError(path, "not a ForceRegressor checkpoint (no 'force_model' entry)")
+        module_name, _, class_name = spec["class_path"].rpartition(".")
+        init_args = dict(spec["init_args"])
+        if "weights_path" in init_args:
+            init_args["weights_path"] = None
+        model = getattr(importlib.import_module(module_name), class_name)(**init_args)
+        hparams = {k: v for k, v in checkpoint.get("hyper_parameters", {}).items() if k in ("lr", "weight_decay")}
+        regressor = cls(model, **hparams)
+        regressor.load_state_dict(checkpoint["state_dict"])
+        return regressor.eval()

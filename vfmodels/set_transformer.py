@@ -1,0 +1,137 @@
+"""The proposed force model: a Set Transformer (Lee et al. 2019) per frame over the tracked points,
+then a causal LSTM over the clip and one head per force component.
+
+Shapes: B clips, T frames, N points, C features per point (e.g. x, y, z in mm and vx, vy, vz in mm/s,
+normalised by the training statistics before they get here).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vfmodels.decoder import CausalForceDecoder
+
+
+class MultiheadAttentionBlock(nn.Module):
+    """MAB(X, Y) = LN(H + rFF(H)), H = LN(X + Multihead(X, Y, Y)), as defined by Lee et al. 2019.
+
+    Multihead projects queries, keys and values, attends per head with fused scaled dot-product
+    attention and projects the concatenated heads back (W^O). rFF is one row-wise Linear + ReLU, as in
+    the authors' reference implementation. Keys marked invalid take no part in the attention.
+    """
+
+    def __init__(self, dim: int, heads: int, layer_norm: bool = True):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"dim {dim} is not divisible by heads {heads}")
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+        self.ff = nn.Sequential(nn.Linear(dim, dim), nn.ReLU())
+        self.norm_attn = nn.LayerNorm(dim) if layer_norm else nn.Identity()
+        self.norm_ff = nn.LayerNorm(dim) if layer_norm else nn.Identity()
+
+    def _split(self, x: torch.Tensor) -> torch.Tensor:
+        b, n, d = x.shape
+        return x.view(b, n, self.heads, d // self.heads).transpose(1, 2)
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor, y_valid: torch.Tensor | None = None) -> torch.Tensor:
+        """x (Bx, Nq, D) queries, Bx = B or 1 (learned seeds shared by the batch); y (B, Nk, D) keys
+        and values; y_valid (B, Nk) bool, True where the key may be attended to. Returns (B, Nq, D)."""
+        batch = y.shape[0]
+        q = self.q(x).expand(batch, -1, -1)
+        k, v = self.kv(y).chunk(2, dim=-1)
+        mask = None if y_valid is None else y_valid[:, None, None, :]
+        o = F.scaled_dot_product_attention(self._split(q), self._split(k), self._split(v), attn_mask=mask)
+        o = o.transpose(1, 2).reshape(batch, x.shape[1], -1)
+        h = self.norm_attn(x + self.out(o))
+        return self.norm_ff(h + self.ff(h))
+
+
+class InducedSetAttentionBlock(nn.Module):
+    """ISAB_m(X) = MAB(X, MAB(I, X)) with m learned inducing points I: O(N m) instead of O(N^2), and
+    equivariant to the order of X. Invalid points are masked as keys of the first MAB; their own
+    outputs are computed but never read as keys downstream."""
+
+    def __init__(self, dim: int, heads: int, inducing_points: int, layer_norm: bool = True):
+        super().__init__()
+        self.inducing = nn.Parameter(torch.empty(1, inducing_points, dim))
+        nn.init.xavier_uniform_(self.inducing)
+        self.summarise = MultiheadAttentionBlock(dim, heads, layer_norm)
+        self.broadcast = MultiheadAttentionBlock(dim, heads, layer_norm)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        h = self.summarise(self.inducing, x, valid)
+        return self.broadcast(x, h)
+
+
+class PoolingByMultiheadAttention(nn.Module):
+    """PMA_k(Z) = MAB(S, rFF(Z)) with k learned seeds S: invariant to the order of Z."""
+
+    def __init__(self, dim: int, heads: int, seeds: int = 1, layer_norm: bool = True):
+        super().__init__()
+        self.seeds = nn.Parameter(torch.empty(1, seeds, dim))
+        nn.init.xavier_uniform_(self.seeds)
+        self.ff = nn.Sequential(nn.Linear(dim, dim), nn.ReLU())
+        self.pool = MultiheadAttentionBlock(dim, heads, layer_norm)
+
+    def forward(self, z: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        return self.pool(self.seeds, self.ff(z), valid)
+
+
+class SetTransformerLSTM(nn.Module):
+    """Point tokens (B, T, N, C) [+ valid (B, T, N)] -> forces (B, T, 3) in normalised units.
+
+    Per frame: Linear(C -> dim), `isab_blocks` ISABs, PMA with one seed -> z_t (dim). Over the clip:
+    a one-layer unidirectional LSTM and three independent heads (Fx, Fy, Fz). The output is invariant
+    to the order of the N points and causal in time (frame t sees frames <= t only).
+
+    Invalid points (not visible, or padding) are zeroed and masked as attention keys. A frame with no
+    valid point at all is encoded as a set of all-zero tokens (a fixed "nothing visible" embedding)
+    rather than an attention over nothing, which is undefined.
+    """
+
+    input_key = "tokens"
+    channel_dim = -1
+
+    def __init__(
+        self,
+        in_features: int = 6,
+        dim: int = 64,
+        heads: int = 4,
+        inducing_points: int = 16,
+        isab_blocks: int = 2,
+        layer_norm: bool = True,
+        lstm_hidden: int = 192,
+    ):
+        super().__init__()
+        self.config = dict(
+            in_features=in_features, dim=dim, heads=heads, inducing_points=inducing_points,
+            isab_blocks=isab_blocks, layer_norm=layer_norm, lstm_hidden=lstm_hidden,
+        )
+        self.embed = nn.Linear(in_features, dim)
+        self.blocks = nn.ModuleList(
+            InducedSetAttentionBlock(dim, heads, inducing_points, layer_norm) for _ in range(isab_blocks)
+        )
+        self.pool = PoolingByMultiheadAttention(dim, heads, seeds=1, layer_norm=layer_norm)
+        self.decoder = CausalForceDecoder(dim, lstm_hidden)
+
+    def encode_frames(self, tokens: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, T, N, C) [+ (B, T, N) bool] -> per-frame embeddings z (B, T, dim)."""
+        b, t, n, c = tokens.shape
+        x = tokens.reshape(b * t, n, c)
+        if valid is not None:
+            valid = valid.reshape(b * t, n)
+            x = x.masked_fill(~valid[..., None], 0.0)
+            # Nothing visible in a frame: attend to the (all-zero) tokens instead of to nothing.
+            valid = valid | ~valid.any(dim=1, keepdim=True)
+        x = self.embed(x)
+        for block in self.blocks:
+            x = block(x, valid)
+        return self.pool(x, valid).view(b, t, -1)
+
+    def forward(self, tokens: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        return self.decoder(self.encode_frames(tokens, valid))
