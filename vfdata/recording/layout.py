@@ -1,0 +1,113 @@
+"""The VisionForce MCAP layout, version 1: topic names, message types, frame ids and the recording
+metadata record. `docs/format.md` is the human-readable version of this module."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+
+LAYOUT_VERSION = "1"
+PROFILE = "ros2"
+MESSAGE_ENCODING = "cdr"
+SCHEMA_ENCODING = "ros2msg"
+
+# Recording topics.
+LEFT_IMAGE = "/stereo/left/image/compressed"
+RIGHT_IMAGE = "/stereo/right/image/compressed"
+LEFT_INFO = "/stereo/left/camera_info"
+RIGHT_INFO = "/stereo/right/camera_info"
+WRENCH = "/force_sensor/wrench"
+ECM_POSE = "/ecm/measured_cp"
+TF_STATIC = "/tf_static"
+
+RECORDING_TOPICS: dict[str, str] = {
+    LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
+    RIGHT_IMAGE: "sensor_msgs/msg/CompressedImage",
+    LEFT_INFO: "sensor_msgs/msg/CameraInfo",
+    RIGHT_INFO: "sensor_msgs/msg/CameraInfo",
+    WRENCH: "geometry_msgs/msg/WrenchStamped",
+    ECM_POSE: "geometry_msgs/msg/PoseStamped",
+    TF_STATIC: "tf2_msgs/msg/TFMessage",
+}
+REQUIRED_TOPICS = (LEFT_IMAGE, RIGHT_IMAGE, LEFT_INFO, RIGHT_INFO, WRENCH, TF_STATIC)
+
+# Derived topics (written by later stages into separate files beside the recording).
+TISSUE_MASK = "/tissue/mask"
+TISSUE_DEPTH = "/tissue/depth"
+TISSUE_POINTS = "/tissue/points"
+TRACKING_POINTS = "/tracking/points"
+FORCE_ESTIMATE = "/force/estimate"
+
+DERIVED_TOPICS: dict[str, str] = {
+    TISSUE_MASK: "sensor_msgs/msg/CompressedImage",
+    TISSUE_DEPTH: "sensor_msgs/msg/Image",
+    TISSUE_POINTS: "sensor_msgs/msg/PointCloud2",
+    TRACKING_POINTS: "sensor_msgs/msg/PointCloud2",
+    FORCE_ESTIMATE: "geometry_msgs/msg/WrenchStamped",
+    TF_STATIC: "tf2_msgs/msg/TFMessage",
+}
+
+# Frame ids (tf tree: world -> left camera (ECM pose), left -> right, left -> object).
+WORLD_FRAME = "world"
+LEFT_FRAME = "stereo_left_optical"
+RIGHT_FRAME = "stereo_right_optical"
+SENSOR_FRAME = "force_sensor"
+OBJECT_FRAME = "tissue_object"
+
+RECORDING_METADATA = "visionforce.recording"
+DERIVED_METADATA = "visionforce.derived"
+
+UNITS = {
+    "time": "ns since the Unix epoch (header.stamp == MCAP log_time)",
+    "force": "N, sensor frame",
+    "torque": "N*m, sensor frame",
+    "ecm_pose": "m, camera pose in the world frame",
+    "camera_info.p": "pixels; right P[0,3] = -fx * baseline in m (ROS)",
+}
+
+
+@dataclass
+class RecordingMeta:
+    """The `visionforce.recording` metadata record. MCAP metadata is a string map: scalars are
+    written as text, lists and dicts as JSON."""
+
+    recording_id: str = ""
+    study: str = ""
+    tissue: str = ""
+    orientation_deg: float = 0.0
+    split: str = ""
+    source: str = ""
+    converter: str = "vfdata"
+    converter_version: str = ""
+    layout_version: str = LAYOUT_VERSION
+    gravity_up_world: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    units: dict[str, str] = field(default_factory=lambda: dict(UNITS))
+    extra: dict[str, str] = field(default_factory=dict)
+
+    def to_record(self) -> dict[str, str]:
+        record = {}
+        for key, value in asdict(self).items():
+            if key == "extra":
+                continue
+            record[key] = json.dumps(list(value) if isinstance(value, tuple) else value) if isinstance(
+                value, (tuple, list, dict)) else str(value)
+        for key, value in self.extra.items():
+            record.setdefault(key, str(value))
+        return record
+
+    @classmethod
+    def from_record(cls, record: dict[str, str]) -> RecordingMeta:
+        meta = cls()
+        known = set(meta.__dataclass_fields__) - {"extra"}
+        for key, text in record.items():
+            if key not in known:
+                meta.extra[key] = text
+            elif key == "orientation_deg":
+                meta.orientation_deg = float(text) if text else 0.0
+            elif key == "gravity_up_world":
+                meta.gravity_up_world = tuple(float(v) for v in json.loads(text))
+            elif key == "units":
+                meta.units = json.loads(text)
+            else:
+                setattr(meta, key, text)
+        return meta
