@@ -2,11 +2,24 @@
 
 `GeometryTracker` (geometry.py) is the paper's method (`mode="geometry+"` adds an image-flow term);
 `KLTTracker` (klt.py) lifts OpenCV Lucas-Kanade tracks with the depth map; `CoTrackerTracker`
-(cotracker.py) does the same with CoTracker3 from a local checkpoint; groundtruth.py carries the
-simulator's material points along as an upper bound and as the reference of the error metrics.
+(cotracker.py) does the same with CoTracker3 from a local checkpoint; `GroundTruthTracker`
+(groundtruth.py) carries the simulator's material points along, the upper bound and the reference of
+the error metrics.
 """
 
+from vfdata.tracking.cotracker import CoTrackerTracker, load_cotracker
 from vfdata.tracking.geometry import GeometryTracker, TrackerOptions
+from vfdata.tracking.groundtruth import GroundTruthTracker, ground_truth_tracks
+from vfdata.tracking.klt import KLTTracker
 from vfdata.tracking.sampling import farthest_point_sampling
 
-__all__ = ["GeometryTracker", "TrackerOptions", "farthest_point_sampling"]
+__all__ = [
+    "CoTrackerTracker",
+    "GeometryTracker",
+    "GroundTruthTracker",
+    "KLTTracker",
+    "TrackerOptions",
+    "farthest_point_sampling",
+    "ground_truth_tracks",
+    "load_cotracker",
+]

@@ -26,8 +26,14 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     return idx[~own].reshape(len(points), k)
 
 
-def reconstruction_weights(points: np.ndarray, neighbours: np.ndarray, regularization: float = 1e-3) -> np.ndarray:
-    """(N, k) affine LLE weights reconstructing each of `points` (N, 3) from `neighbours` (N, k).
+def reconstruction_weights(
+    points: np.ndarray,
+    neighbours: np.ndarray,
+    regularization: float = 1e-3,
+    basis: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N, k) affine LLE weights reconstructing each of `points` (N, 3) from `neighbours` (N, k), rows
+    of `basis` (another (P, 3) cloud) when given, else of `points` itself.
 
     Solves the local Gram system C w = 1 with C_jl = (x_j - x_i) . (x_l - x_i), then normalises w to
     sum 1. C has rank <= 3 < k, so `regularization` times trace(C) is added to its diagonal (the usual
@@ -36,7 +42,8 @@ def reconstruction_weights(points: np.ndarray, neighbours: np.ndarray, regulariz
     points = np.asarray(points, dtype=np.float64)
     neighbours = np.asarray(neighbours, dtype=np.int64)
     k = neighbours.shape[1]
-    z = points[neighbours] - points[:, None, :]  # (N, k, 3)
+    basis = points if basis is None else np.asarray(basis, dtype=np.float64)
+    z = basis[neighbours] - points[:, None, :]  # (N, k, 3)
     gram = np.einsum("nkd,nld->nkl", z, z)
     trace = np.trace(gram, axis1=1, axis2=2)
     # Coincident neighbours (trace 0) still need a well-posed system: fall back to an absolute floor.
