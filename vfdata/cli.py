@@ -37,6 +37,12 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"vfdata {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:
+        if args.debug:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"vfdata {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"vfdata {args.command}: interrupted", file=sys.stderr)
         return 130

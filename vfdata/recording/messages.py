@@ -212,6 +212,10 @@ class TFMessage:
     msgtype = "tf2_msgs/msg/TFMessage"
     transforms: list[TransformStamped] = field(default_factory=list)
 
+    @property
+    def stamp_ns(self) -> int:
+        return self.transforms[0].stamp_ns if self.transforms else 0
+
     def encode(self) -> bytes:
         w = CdrWriter()
         w.uint32(len(self.transforms))

@@ -1,0 +1,19 @@
+"""`vfdata info FILE`: topics, types, counts, rates, duration, gaps and force-to-frame sync."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vfdata.recording.inspect import info_text
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="describe a recording or derived MCAP")
+    p.add_argument("file", type=Path)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    print(info_text(args.file))
+    return 0

@@ -1,0 +1,185 @@
+"""`vfdata info` and `vfdata check`: what a file holds, and whether it follows the layout intact."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vfdata.errors import VisionForceError
+from vfdata.recording import layout
+from vfdata.recording.mcapfile import _FOOTER_SIZE, MAGIC, OP_DATA_END, OP_FOOTER
+from vfdata.recording.messages import decode
+from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS, Recording
+
+
+@dataclass
+class SyncStats:
+    """How force samples sit against frame times (ns)."""
+
+    samples_per_frame_median: float
+    nearest_offset_median_ns: float
+    nearest_offset_max_ns: float
+    frames_without_force: int  # frames farther than the gap tolerance from any sample
+
+
+def sync_stats(frame_ns: np.ndarray, force_ns: np.ndarray, tolerance_ns: int = FORCE_GAP_TOLERANCE_NS) -> SyncStats:
+    pos = np.clip(np.searchsorted(force_ns, frame_ns), 1, len(force_ns) - 1) if len(force_ns) > 1 else np.zeros(
+        len(frame_ns), dtype=int)
+    nearest = np.minimum(np.abs(force_ns[pos] - frame_ns), np.abs(force_ns[np.maximum(pos - 1, 0)] - frame_ns))
+    edges = np.searchsorted(force_ns, frame_ns)
+    per_frame = np.diff(edges) if len(edges) > 1 else np.array([len(force_ns)])
+    return SyncStats(
+        float(np.median(per_frame)), float(np.median(nearest)), float(nearest.max()),
+        int((nearest > tolerance_ns).sum()),
+    )
+
+
+def info_text(path: str | Path) -> str:
+    rec = Recording.open(path)
+    lines = [f"file: {rec.path}  ({rec.path.stat().st_size / 1e6:.1f} MB)"]
+    start, end = rec.time_range_ns
+    lines.append(f"duration: {(end - start) / 1e9:.3f} s  ({start} .. {end} ns)")
+    meta = rec.metadata_records.get(layout.RECORDING_METADATA) or rec.metadata_records.get(layout.DERIVED_METADATA)
+    if meta:
+        shown = {k: v for k, v in meta.items() if k != "units"}
+        lines.append("metadata: " + ", ".join(f"{k}={v}" for k, v in shown.items() if v))
+    lines.append("")
+    lines.append(f"{'topic':34} {'type':34} {'count':>8} {'rate Hz':>9} {'max gap ms':>11}")
+    for info in rec.topics.values():
+        times = rec.log_times_ns(info.topic) if info.count else np.zeros(0)
+        gap = np.diff(times).max() / 1e6 if len(times) > 1 else 0.0
+        lines.append(f"{info.topic:34} {info.msgtype:34} {info.count:>8} {info.rate_hz:>9.2f} {gap:>11.2f}")
+    if rec.has(layout.WRENCH) and rec.num_frames:
+        stats = sync_stats(rec.frame_times_ns, rec.force.times_ns)
+        lines.append("")
+        lines.append(
+            f"force-to-frame sync: {stats.samples_per_frame_median:.0f} samples per frame (median); nearest sample "
+            f"{stats.nearest_offset_median_ns / 1e6:.3f} ms median, {stats.nearest_offset_max_ns / 1e6:.3f} ms max; "
+            f"{stats.frames_without_force} frame(s) farther than {FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms from any sample"
+        )
+    if rec.has(layout.LEFT_INFO):
+        stereo = rec.stereo
+        cam = stereo.left
+        lines.append(
+            f"camera: {cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f} px, "
+            f"baseline {stereo.baseline_mm:.2f} mm"
+        )
+    for problem in rec.problems:
+        lines.append(f"damaged: {problem}")
+    return "\n".join(lines)
+
+
+def check_file(path: str | Path) -> list[str]:
+    """Every problem found (empty when the file is sound and follows the layout)."""
+    path = Path(path)
+    try:
+        rec = Recording.open(path)
+    except VisionForceError as exc:
+        return [str(exc)]
+    problems = list(rec.problems)
+    problems += _check_crcs(path, rec)
+    index = rec._mcap.index
+    if index.profile != layout.PROFILE:
+        problems.append(f"profile is '{index.profile}', expected '{layout.PROFILE}'")
+    for channel in index.channels.values():
+        if channel.message_encoding != layout.MESSAGE_ENCODING:
+            problems.append(f"{channel.topic}: message encoding '{channel.message_encoding}', expected cdr")
+        if channel.schema_encoding != layout.SCHEMA_ENCODING:
+            problems.append(f"{channel.topic}: schema encoding '{channel.schema_encoding}', expected ros2msg")
+    is_recording = layout.RECORDING_METADATA in rec.metadata_records
+    expected = layout.RECORDING_TOPICS if is_recording else layout.DERIVED_TOPICS
+    if not is_recording and layout.DERIVED_METADATA not in rec.metadata_records:
+        problems.append(f"no '{layout.RECORDING_METADATA}' or '{layout.DERIVED_METADATA}' metadata record")
+    for topic, info in rec.topics.items():
+        if topic not in expected:
+            problems.append(f"{topic}: not a topic of the layout")
+        elif info.msgtype != expected[topic]:
+            problems.append(f"{topic}: type {info.msgtype}, expected {expected[topic]}")
+    if is_recording:
+        for topic in layout.REQUIRED_TOPICS:
+            if not rec.has(topic):
+                problems.append(f"{topic}: missing")
+    for topic, info in rec.topics.items():
+        if topic == layout.TF_STATIC or not info.count or topic not in expected:
+            continue
+        problems += _check_stamps(rec, topic)
+    if is_recording and rec.has(layout.LEFT_IMAGE) and rec.has(layout.RIGHT_IMAGE):
+        left, right = rec.log_times_ns(layout.LEFT_IMAGE), rec.log_times_ns(layout.RIGHT_IMAGE)
+        if not np.array_equal(left, right):
+            problems.append(f"left ({len(left)}) and right ({len(right)}) image stamps do not pair one to one")
+        if rec.has(layout.WRENCH):
+            stats = sync_stats(left, rec.force.times_ns)
+            if stats.frames_without_force:
+                problems.append(
+                    f"{stats.frames_without_force} frame(s) have no force sample within "
+                    f"{FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms"
+                )
+    return problems
+
+
+def _check_stamps(rec: Recording, topic: str) -> list[str]:
+    """Log times strictly increasing and equal to header.stamp."""
+    problems = []
+    times = rec.log_times_ns(topic)
+    steps = np.diff(times)
+    if (steps <= 0).any():
+        problems.append(f"{topic}: {(steps <= 0).sum()} stamp(s) repeat or go backwards")
+    channel = rec._by_topic[topic]
+    mismatched = 0
+    try:
+        if topic in (layout.WRENCH, layout.ECM_POSE):
+            stamps = rec.force.times_ns if topic == layout.WRENCH else rec.ecm_pose.times_ns
+            mismatched = int((np.sort(stamps) != times).sum())
+        else:
+            for log_time, payload in rec._mcap.iter_payloads(channel.id):
+                message = decode(channel.msgtype, payload)
+                if getattr(message, "stamp_ns", log_time) != log_time:
+                    mismatched += 1
+    except (VisionForceError, ValueError) as exc:
+        problems.append(f"{topic}: message cannot be decoded ({exc})")
+    if mismatched:
+        problems.append(f"{topic}: {mismatched} message(s) with header.stamp != log time")
+    return problems
+
+
+def _check_crcs(path: Path, rec: Recording) -> list[str]:
+    problems = []
+    mcap = rec._mcap
+    for chunk_id, chunk in enumerate(mcap.index.chunks):
+        try:
+            if not mcap.chunk_crc_ok(chunk_id):
+                problems.append(f"chunk at byte {chunk.record_offset}: CRC mismatch")
+        except VisionForceError as exc:
+            problems.append(str(exc))
+    if not mcap.index.from_summary:
+        return problems
+    size = mcap.size
+    footer_at = size - len(MAGIC) - _FOOTER_SIZE
+    summary_start, summary_offset_start, summary_crc = struct.unpack("<QQI", mcap.read_at(footer_at + 9, 20))
+    if summary_crc:
+        crc = _crc_range(mcap, summary_start, footer_at + 1 + 8 + 16)
+        if crc != summary_crc:
+            problems.append("summary section CRC mismatch")
+    data_end_at = (summary_start or footer_at) - 13
+    opcode, _length = struct.unpack("<BQ", mcap.read_at(data_end_at, 9))
+    if opcode == OP_DATA_END:
+        (data_crc,) = struct.unpack("<I", mcap.read_at(data_end_at + 9, 4))
+        if data_crc and _crc_range(mcap, 0, data_end_at) != data_crc:
+            problems.append("data section CRC mismatch")
+    elif opcode != OP_FOOTER:
+        problems.append("data end record not found before the summary")
+    return problems
+
+
+def _crc_range(mcap, start: int, end: int, block: int = 16 * 1024 * 1024) -> int:
+    crc = 0
+    pos = start
+    while pos < end:
+        n = min(block, end - pos)
+        crc = zlib.crc32(mcap.read_at(pos, n), crc)
+        pos += n
+    return crc
