@@ -50,7 +50,8 @@ def make_raw(folder: Path, n: int = 12, width: int = 160, height: int = 128, *, 
     else:
         fourcc = cv2.VideoWriter_fourcc(*"MJPG")
         if video == "pair":
-            writers = [cv2.VideoWriter(str(folder / f"{s}.avi"), fourcc, 30, (width, height)) for s in ("left", "right")]
+            writers = [cv2.VideoWriter(str(folder / f"{side}.avi"), fourcc, 30, (width, height))
+                       for side in ("left", "right")]
             for left, right in pairs:
                 writers[0].write(left)
                 writers[1].write(right)

@@ -167,7 +167,8 @@ class StereoCalibration:
             fs.release()
         if calib.width <= 0 or calib.height <= 0:
             raise InputError(path, "image_width and image_height must be positive")
-        values = np.concatenate([calib.K1.ravel(), calib.K2.ravel(), calib.R.ravel(), calib.T, calib.D1, calib.D2])
+        values = np.concatenate([calib.K1.ravel(), calib.K2.ravel(), calib.R.ravel(), calib.T, calib.D1,
+                                 calib.D2])
         if not np.isfinite(values).all():
             raise InputError(path, "calibration holds NaN or inf")
         if np.linalg.norm(calib.T) <= 0:
@@ -210,8 +211,8 @@ class StereoCalibration:
             left = PinholeCamera(k[0, 0], k[1, 1], k[0, 2], k[1, 2], self.width, self.height)
             return RectifiedStereo(left=left, baseline_mm=float(abs(self.T[0])))
         R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-            self.K1, self.D1, self.K2, self.D2, (self.width, self.height), self.R, self.T,
-            flags=cv2.CALIB_ZERO_DISPARITY, alpha=0,
+            self.K1, self.D1.reshape(1, -1), self.K2, self.D2.reshape(1, -1), (self.width, self.height), self.R,
+            self.T.reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0,
         )
         left = PinholeCamera(P1[0, 0], P1[1, 1], P1[0, 2], P1[1, 2], self.width, self.height)
         return RectifiedStereo(left=left, baseline_mm=float(-P2[0, 3] / P2[0, 0]), R1=R1, R2=R2)

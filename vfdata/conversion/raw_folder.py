@@ -31,7 +31,7 @@ from vfdata.recording.messages import (
     WrenchStamped,
 )
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
-from vfdata.recording.writer import McapWriter
+from vfdata.recording.writer import CHUNK_SIZE, McapWriter
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
@@ -48,6 +48,7 @@ class ConvertOptions:
     force_gap_tolerance_ns: int = FORCE_GAP_TOLERANCE_NS
     workers: int = 2
     progress: bool = True
+    chunk_size: int = CHUNK_SIZE  # bytes of messages per MCAP chunk
 
 
 # -- tables ---------------------------------------------------------------------------------------
@@ -60,7 +61,7 @@ def read_frames_csv(path: Path) -> np.ndarray:
         raise InputError(path, "no rows")
     if not np.array_equal(frames, np.arange(len(frames))):
         bad = int(np.nonzero(frames != np.arange(len(frames)))[0][0])
-        raise InputError(path, f"row {bad + 2}: frame numbers must run 0, 1, 2, ... (found {frames[bad]})")
+        raise InputError(path, f"line {bad + 2}: frame numbers must run 0, 1, 2, ... (found {frames[bad]})")
     _check_increasing(path, stamps)
     return stamps
 
@@ -103,7 +104,7 @@ def read_pose_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     _check_increasing(path, stamps)
     norms = np.linalg.norm(values[:, 3:], axis=1)
     if (norms < 1e-6).any():
-        raise InputError(path, f"row {int(np.argmax(norms < 1e-6)) + 2}: quaternion has zero length")
+        raise InputError(path, f"line {int(np.argmax(norms < 1e-6)) + 2}: quaternion has zero length")
     values[:, 3:] /= norms[:, None]
     return stamps, values
 
@@ -124,7 +125,7 @@ def _int_column(path: Path, rows: list[dict[str, str]], column: str) -> np.ndarr
         return np.array([int(r[column]) for r in rows], dtype=np.int64)
     except (TypeError, ValueError):
         bad = next(i for i, r in enumerate(rows) if not str(r[column]).strip().lstrip("-").isdigit())
-        raise InputError(path, f"row {bad + 2}: {column} '{rows[bad][column]}' is not an integer") from None
+        raise InputError(path, f"line {bad + 2}: {column} '{rows[bad][column]}' is not an integer") from None
 
 
 def _float_columns(path: Path, rows: list[dict[str, str]], columns: list[str]) -> np.ndarray:
@@ -136,14 +137,14 @@ def _float_columns(path: Path, rows: list[dict[str, str]], columns: list[str]) -
                 try:
                     float(r[c])
                 except (TypeError, ValueError):
-                    raise InputError(path, f"row {i + 2}: {c} '{r[c]}' is not a number") from None
+                    raise InputError(path, f"line {i + 2}: {c} '{r[c]}' is not a number") from None
         raise
 
 
 def _check_finite(path: Path, values: np.ndarray) -> None:
     bad = ~np.isfinite(values).all(axis=1)
     if bad.any():
-        raise InputError(path, f"row {int(np.argmax(bad)) + 2}: NaN or inf value")
+        raise InputError(path, f"line {int(np.argmax(bad)) + 2}: NaN or inf value")
 
 
 def _check_increasing(path: Path, stamps: np.ndarray) -> None:
@@ -151,7 +152,7 @@ def _check_increasing(path: Path, stamps: np.ndarray) -> None:
     if (steps <= 0).any():
         i = int(np.argmax(steps <= 0))
         what = "repeats" if steps[i] == 0 else "goes backwards"
-        raise InputError(path, f"row {i + 3}: timestamp {stamps[i + 1]} {what} (previous {stamps[i]})")
+        raise InputError(path, f"line {i + 3}: timestamp {stamps[i + 1]} {what} (previous {stamps[i]})")
 
 
 def check_force_covers(path: Path, force_ns: np.ndarray, frame_ns: np.ndarray, tolerance_ns: int) -> None:
@@ -389,7 +390,8 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     force_i = 0
     pose_i = 0
     info_l, info_r = camera_infos(calib, int(frame_ns[0]))
-    with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer:
+    with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
+                     separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
         writer.write(layout.TF_STATIC, stereo_tf(calib, int(frame_ns[0])))
         with ThreadPoolExecutor(max(1, options.workers)) as pool:
@@ -409,8 +411,9 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
                 info_l.stamp_ns = info_r.stamp_ns = stamp
                 writer.write(layout.LEFT_INFO, info_l)
                 writer.write(layout.RIGHT_INFO, info_r)
-                writer.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, options.image_format, left_bytes))
-                writer.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, options.image_format, right_bytes))
+                fmt = options.image_format
+                writer.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, fmt, left_bytes))
+                writer.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, fmt, right_bytes))
                 bar.update()
             bar.close()
             if i + 1 != len(frame_ns):

@@ -368,7 +368,8 @@ class McapFile:
         head = self.read_at(record_offset + 9 + 24, 4)
         (crc,) = struct.unpack("<I", head)
         data_offset = record_offset + 9 + 24 + 4 + 4 + len(compression.encode()) + 8
-        chunk = Chunk(record_offset, data_offset, compressed_size, uncompressed_size, crc, compression, start_ns, end_ns)
+        chunk = Chunk(record_offset, data_offset, compressed_size, uncompressed_size, crc, compression, start_ns,
+                      end_ns)
         return chunk, offsets, index_length
 
     def _parse_schema(self, body: _Buffer) -> None:
@@ -433,9 +434,9 @@ class McapFile:
         compression = body.string()
         compressed_size = body.u64()
         chunk = Chunk(pos, pos + 9 + body.pos, compressed_size, uncompressed_size, crc, compression, start_ns, end_ns)
+        records = self._decompress(chunk, bytes(body.take(compressed_size)))
         chunk_id = len(index.chunks)
         index.chunks.append(chunk)
-        records = self.chunk_records(chunk_id)
         if crc and zlib.crc32(records) != crc:
             index.problems.append(f"chunk at byte {pos}: CRC mismatch")
         inner = 0
