@@ -14,6 +14,7 @@ COMMANDS = [
     "convert",
     "info",
     "check",
+    "inspect-bag",
 ]
 
 

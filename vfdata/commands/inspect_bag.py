@@ -1,0 +1,149 @@
+"""`vfdata inspect-bag BAG`: the topics of a ROS 1 or ROS 2 bag (types, counts, rates) and which of
+them `vfdata convert` would read, with the stereo pairing and force coverage it would find.
+
+`add_bag_arguments` and `bag_arguments` are shared with `vfdata convert` (same topic options)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vfdata.calibration import StereoCalibration
+from vfdata.conversion import bags
+from vfdata.errors import InputError
+from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
+
+
+def add_bag_arguments(p: argparse.ArgumentParser) -> None:
+    """The topic remapping and camera options of a bag conversion."""
+    g = p.add_argument_group("ROS bags (defaults: dVRK topic names, auto-detected by type when absent)")
+    g.add_argument("--left-topic", metavar="TOPIC",
+                   help=f"left images, Image or CompressedImage (default {bags.LEFT_IMAGE_DEFAULTS[0]})")
+    g.add_argument("--right-topic", metavar="TOPIC",
+                   help=f"right images (default {bags.RIGHT_IMAGE_DEFAULTS[0]})")
+    g.add_argument("--left-info-topic", metavar="TOPIC", help="left CameraInfo (default: camera_info beside the "
+                                                              "left image topic)")
+    g.add_argument("--right-info-topic", metavar="TOPIC", help="right CameraInfo (default: beside the right images)")
+    g.add_argument("--force-topic", metavar="TOPIC",
+                   help=f"force sensor WrenchStamped (default: first of {', '.join(bags.FORCE_DEFAULTS)})")
+    g.add_argument("--pose-topic", metavar="TOPIC",
+                   help=f"ECM pose, PoseStamped or TransformStamped (default {bags.POSE_DEFAULTS[0]}; "
+                        f"'{bags.NO_TOPIC}' to leave it out)")
+    g.add_argument("--calibration", type=Path, metavar="YAML",
+                   help="stereo calibration (docs/raw_layout.md) to use instead of the bag's CameraInfo")
+    g.add_argument("--pair-tolerance-ms", type=float, metavar="MS",
+                   help="largest left/right stamp difference of a stereo pair (default half the frame period)")
+
+
+def bag_arguments(args: argparse.Namespace) -> dict:
+    """Keyword arguments of `bags.convert_bag` from the options of `add_bag_arguments`."""
+    return {
+        "topics": bags.BagTopics(args.left_topic, args.right_topic, args.left_info_topic, args.right_info_topic,
+                                 args.force_topic, args.pose_topic),
+        "calibration": args.calibration,
+        "pair_tolerance_ns": None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6),
+    }
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("inspect-bag", help="list a ROS bag's topics and which ones convert would use",
+                       description="List the topics of a ROS 1 (.bag) or ROS 2 (folder, .db3, .mcap) bag with "
+                                   "types, counts and rates, and say which ones `vfdata convert` would read.")
+    p.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder")
+    add_bag_arguments(p)
+    p.add_argument("--force-gap-ms", type=float, default=FORCE_GAP_TOLERANCE_NS / 1e6,
+                   help="largest gap allowed in the force stream over the video span (default 50 ms)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    kwargs = bag_arguments(args)
+    print(inspect_bag_text(args.bag, kwargs["topics"], kwargs["calibration"], kwargs["pair_tolerance_ns"],
+                           int(args.force_gap_ms * 1e6), progress=not args.quiet))
+    return 0
+
+
+def inspect_bag_text(path: str | Path, topics: bags.BagTopics | None = None, calibration: Path | None = None,
+                     pair_tolerance_ns: int | None = None, force_gap_ns: int = FORCE_GAP_TOLERANCE_NS,
+                     progress: bool = False) -> str:
+    """The report printed by `vfdata inspect-bag`. A bag that cannot be converted is still listed,
+    with the reason under "conversion"."""
+    path = Path(path)
+    lines = []
+    with bags.open_bag(path) as reader:
+        types = bags.topic_types(reader)
+        size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+        lines.append(f"bag: {path}  ({bags.bag_kind(path)}, {size / 1e6:.1f} MB, {reader.message_count} messages, "
+                     f"{reader.duration / 1e9:.3f} s)")
+        try:
+            choice = bags.choose_topics(path, types, topics or bags.BagTopics(), use_camera_info=calibration is None)
+        except InputError as exc:
+            choice, problem = None, exc.problem
+        if choice is None:
+            counts = {name: info.msgcount for name, info in reader.topics.items()}
+            receive = bags.receive_times(reader, path, progress)
+            scan = None
+        else:
+            scan = bags.scan_bag(reader, path, choice, all_topics=True, progress=progress)
+            counts, receive = scan.counts, scan.receive_ns
+    rates = bags.topic_rates_hz(receive)
+    used = _used_topics(choice)
+    width = max([34, *(len(t) + 2 for t in types)])
+    lines.append("")
+    lines.append(f"{'topic':{width}} {'type':36} {'count':>8} {'rate Hz':>9}  used as")
+    for topic, msgtype in types.items():
+        lines.append(f"{topic:{width}} {msgtype:36} {counts.get(topic, 0):>8} {rates.get(topic, 0.0):>9.2f}  "
+                     f"{used.get(topic, '')}".rstrip())
+    lines.append("")
+    lines.append("conversion:")
+    if scan is None:
+        lines.append(f"  cannot convert: {problem}")
+        return "\n".join(lines)
+    lines.extend(_conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns))
+    return "\n".join(lines)
+
+
+def _used_topics(choice: bags.TopicChoice | None) -> dict[str, str]:
+    if choice is None:
+        return {}
+    roles = [
+        ("left images", choice.left, "left"), ("right images", choice.right, "right"),
+        ("left camera info", choice.left_info, "left_info"), ("right camera info", choice.right_info, "right_info"),
+        ("force", choice.force, "force"), ("ECM pose", choice.pose, "pose"),
+    ]
+    return {topic: f"{role} ({choice.how.get(key, '')})" for role, topic, key in roles if topic}
+
+
+def _conversion_lines(scan: bags.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
+                      force_gap_ns: int) -> list[str]:
+    lines = []
+    for stream in (scan.left, scan.right):
+        lines.append(f"  {stream.topic}: {stream.count} frames, {stream.width}x{stream.height} {stream.encoding}"
+                     + (f", {stream.fallback_count} with header.stamp 0 (receive time used)"
+                        if stream.fallback_count else ""))
+    if scan.choice.pose is None:
+        lines.append(f"  ECM pose: {scan.choice.how.get('pose', 'none')}")
+    try:
+        plan = bags.plan_pairs(scan, pair_tolerance_ns)
+    except InputError as exc:
+        lines.append(f"  cannot convert: {exc.problem}")
+        return lines
+    lines.append(f"  stereo pairs: {len(plan.stamps_ns)} within {plan.tolerance_ns / 1e6:.1f} ms (largest offset "
+                 f"{plan.max_offset_ns / 1e6:.3f} ms); unpaired: {plan.unpaired_left} left, "
+                 f"{plan.unpaired_right} right")
+    force = scan.force
+    lines.append(f"  force: {len(force.stamps_ns)} samples, frame '{force.frame_id}'"
+                 + (f", {force.fallback_count} with header.stamp 0" if force.fallback_count else "")
+                 + (f", {force.duplicate_count} repeated stamps dropped" if force.duplicate_count else ""))
+    try:
+        calib = StereoCalibration.load(calibration) if calibration is not None else None
+        _left, right, tf, source = bags.camera_model(scan, calib, calibration)
+        baseline_mm = tf.transforms[0].translation[0] * 1e3
+        lines.append(f"  camera: {source}; fx {right.p[0, 0]:.1f} px, baseline {baseline_mm:.2f} mm")
+        bags.check_force_span(scan, plan, force_gap_ns)
+    except InputError as exc:
+        lines.append(f"  cannot convert: {exc.problem}")
+        return lines
+    lines.append("  ready to convert")
+    return lines

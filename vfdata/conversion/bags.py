@@ -1,0 +1,896 @@
+"""ROS 1 (`.bag`) and ROS 2 (sqlite3 or MCAP storage) bags -> recording MCAP (layout v1).
+
+Read with the `rosbags` package, so no ROS installation is needed. What is read, with dVRK's usual
+topic names as defaults (every one can be remapped, see `BagTopics`):
+
+- stereo images, `sensor_msgs/Image` (bgr8, rgb8, bgra8, rgba8, mono8, mono16, bayer_*8/16, yuv422)
+  or `sensor_msgs/CompressedImage` (jpeg, png); left and right paired by stamp;
+- camera info from the bag's `sensor_msgs/CameraInfo` topics, or from a calibration file;
+- force, `geometry_msgs/WrenchStamped` (ATI NetFT ROS driver `/netft_data`, cisst/SAW ATI component
+  `/force_sensor/measured_cf`; auto-detected by type when the defaults are absent);
+- ECM pose `/ECM/measured_cp`, `geometry_msgs/PoseStamped` or `TransformStamped`, optional.
+
+Acquisition time is `header.stamp`; a message whose stamp is 0 (header never filled in) takes the
+bag's receive time instead, with a warning.
+
+Two streaming passes over the bag:
+1. scan: the header of every image (image data is not kept), all force, pose and camera info
+   messages. Topics are chosen, frames paired and the force checked against the video span here,
+   so a bad bag fails before anything is encoded.
+2. convert: the images again, in bag order, decoded and JPEG/PNG-encoded on a thread pool and
+   written in stamp order with force and pose interleaved, as the folder converter does."""
+
+from __future__ import annotations
+
+import logging
+import re
+from array import array
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.rosbag1 import ReaderError as Ros1ReaderError
+from rosbags.rosbag2 import ReaderError as Ros2ReaderError
+from rosbags.typesys import Stores, get_typestore
+from tqdm import tqdm
+
+from vfdata import __version__
+from vfdata.calibration import StereoCalibration
+from vfdata.conversion.ordered_map import ordered_map
+from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
+from vfdata.errors import InputError
+from vfdata.recording import layout
+from vfdata.recording.messages import (
+    CameraInfo,
+    CompressedImage,
+    PoseStamped,
+    TFMessage,
+    TransformStamped,
+    WrenchStamped,
+)
+from vfdata.recording.writer import McapWriter
+
+log = logging.getLogger(__name__)
+
+_NS = 1_000_000_000
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+POSE_TYPES = (POSE_STAMPED, TRANSFORM_STAMPED)
+
+# dVRK defaults, in order of preference. Raw images before compressed ones: they are lossless.
+LEFT_IMAGE_DEFAULTS = ("/jhu_daVinci/left/image_raw", "/jhu_daVinci/left/image_raw/compressed")
+RIGHT_IMAGE_DEFAULTS = ("/jhu_daVinci/right/image_raw", "/jhu_daVinci/right/image_raw/compressed")
+# ATI NetFT ROS driver (netft_rdt_driver / netft_utils) and the cisst/SAW ATI force sensor component.
+FORCE_DEFAULTS = ("/netft_data", "/netft/netft_data", "/force_sensor/measured_cf", "/ati/measured_cf")
+# dVRK 2.x CRTK name, the same under a namespace, and the dVRK 1.x name.
+POSE_DEFAULTS = ("/ECM/measured_cp", "/dvrk/ECM/measured_cp", "/dvrk/ECM/position_cartesian_current")
+# dVRK arms publish wrenches estimated from joint torques (e.g. /PSM1/body/measured_cf): never the
+# force sensor, so auto-detection skips them.
+DVRK_ARM_NAMESPACES = ("PSM1", "PSM2", "PSM3", "ECM", "MTML", "MTMR", "SUJ")
+NO_TOPIC = "none"  # `--pose-topic none`: leave the ECM pose out
+
+# sensor_msgs/Image encodings: name -> (channels, bytes per channel).
+RAW_ENCODINGS: dict[str, tuple[int, int]] = {
+    "bgr8": (3, 1), "rgb8": (3, 1), "bgra8": (4, 1), "rgba8": (4, 1), "mono8": (1, 1),
+    "8UC1": (1, 1), "8UC3": (3, 1), "8UC4": (4, 1),
+    "bgr16": (3, 2), "rgb16": (3, 2), "mono16": (1, 2), "16UC1": (1, 2),
+    "bayer_rggb8": (1, 1), "bayer_bggr8": (1, 1), "bayer_gbrg8": (1, 1), "bayer_grbg8": (1, 1),
+    "bayer_rggb16": (1, 2), "bayer_bggr16": (1, 2), "bayer_gbrg16": (1, 2), "bayer_grbg16": (1, 2),
+    "yuv422": (2, 1), "uyvy": (2, 1), "yuv422_yuy2": (2, 1), "yuyv": (2, 1),
+}
+# To BGR. ROS bayer_rggb8 names the first 2x2 block, as OpenCV's RGGB-style codes do (its older
+# BG-style names for the same codes describe the second row; cv_bridge uses those).
+_COLOR_CODES = {
+    "rgb": cv2.COLOR_RGB2BGR, "bgra": cv2.COLOR_BGRA2BGR, "rgba": cv2.COLOR_RGBA2BGR, "mono": cv2.COLOR_GRAY2BGR,
+    "bayer_rggb": cv2.COLOR_BayerRGGB2BGR, "bayer_bggr": cv2.COLOR_BayerBGGR2BGR,
+    "bayer_gbrg": cv2.COLOR_BayerGBRG2BGR, "bayer_grbg": cv2.COLOR_BayerGRBG2BGR,
+    "uyvy": cv2.COLOR_YUV2BGR_UYVY, "yuyv": cv2.COLOR_YUV2BGR_YUY2,
+}
+_ENCODING_FAMILY = {
+    "rgb8": "rgb", "rgb16": "rgb", "bgra8": "bgra", "8UC4": "bgra", "rgba8": "rgba",
+    "mono8": "mono", "8UC1": "mono", "mono16": "mono", "16UC1": "mono",
+    "yuv422": "uyvy", "uyvy": "uyvy", "yuv422_yuy2": "yuyv", "yuyv": "yuyv",
+    **{f"bayer_{p}{b}": f"bayer_{p}" for p in ("rggb", "bggr", "gbrg", "grbg") for b in (8, 16)},
+}
+
+
+class UnsupportedImage(ValueError):
+    """An image message this converter cannot turn into BGR pixels (the caller names the topic)."""
+
+
+# -- opening and choosing topics ------------------------------------------------------------------
+def is_bag(path: str | Path) -> bool:
+    """A ROS 1 bag (`.bag` file) or a ROS 2 bag (a folder with metadata.yaml, or one `.db3` or `.mcap`
+    storage file of it)."""
+    path = Path(path)
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.is_file() and path.suffix in (".bag", ".db3", ".mcap")
+
+
+def bag_kind(path: str | Path) -> str:
+    return "ROS 1" if Path(path).suffix == ".bag" else "ROS 2"
+
+
+def open_bag(path: str | Path) -> AnyReader:
+    """An open `rosbags` reader (close it, or use it in a `with`). ROS 2 bags recorded without message
+    definitions are read with the standard ROS 2 types."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "bag not found")
+    if not is_bag(path):
+        raise InputError(path, "not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
+        reader.open()
+    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, FileNotFoundError, KeyError, ValueError) as exc:
+        raise InputError(path, f"cannot read the bag ({_first_line(exc)})") from None
+    return reader
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topics asked for on the command line; None means the dVRK default or auto-detection.
+    `pose = "none"` leaves the ECM pose out."""
+
+    left: str | None = None
+    right: str | None = None
+    left_info: str | None = None
+    right_info: str | None = None
+    force: str | None = None
+    pose: str | None = None
+
+
+@dataclass
+class TopicChoice:
+    """The topics a conversion reads, each with how it was chosen (for `inspect-bag`)."""
+
+    left: str
+    right: str
+    left_info: str | None
+    right_info: str | None
+    force: str
+    pose: str | None
+    how: dict[str, str] = field(default_factory=dict)
+
+
+def topic_types(reader: AnyReader) -> dict[str, str]:
+    """Topic -> message type (ROS 2 style names, e.g. sensor_msgs/msg/Image, for both bag kinds)."""
+    return {name: info.msgtype or "(mixed types)" for name, info in sorted(reader.topics.items())}
+
+
+def choose_topics(path: Path, types: dict[str, str], asked: BagTopics, use_camera_info: bool = True) -> TopicChoice:
+    """Resolve the topics to read: given ones are checked, missing ones defaulted or auto-detected.
+    Raises InputError (naming the bag) when a required topic cannot be found."""
+    how: dict[str, str] = {}
+    left, right = _choose_images(path, types, asked, how)
+    left_info = right_info = None
+    if use_camera_info:
+        left_info = _choose_info(path, types, asked.left_info, left, "left", "--left-info-topic", how)
+        right_info = _choose_info(path, types, asked.right_info, right, "right", "--right-info-topic", how)
+    force = _choose_force(path, types, asked.force, how)
+    pose = _choose_pose(path, types, asked.pose, how)
+    return TopicChoice(left, right, left_info, right_info, force, pose, how)
+
+
+def _check_given(path: Path, types: dict[str, str], topic: str, allowed: tuple[str, ...], option: str) -> str:
+    if topic not in types:
+        raise InputError(path, f"{option} {topic}: no such topic in the bag")
+    if types[topic] not in allowed:
+        raise InputError(path, f"{option} {topic} is {types[topic]}, expected {' or '.join(allowed)}")
+    return topic
+
+
+def _choose_images(path: Path, types: dict[str, str], asked: BagTopics, how: dict[str, str]) -> tuple[str, str]:
+    if asked.left:
+        left = _check_given(path, types, asked.left, IMAGE_TYPES, "--left-topic")
+        how["left"] = "given"
+    if asked.right:
+        right = _check_given(path, types, asked.right, IMAGE_TYPES, "--right-topic")
+        how["right"] = "given"
+    if asked.left and not asked.right:
+        right = _swap_side(left, "left", "right")
+        if right is None or types.get(right) not in IMAGE_TYPES:
+            raise InputError(path, f"no right image topic beside {left}; pass --right-topic")
+        how["right"] = "matches --left-topic"
+    elif asked.right and not asked.left:
+        left = _swap_side(right, "right", "left")
+        if left is None or types.get(left) not in IMAGE_TYPES:
+            raise InputError(path, f"no left image topic beside {right}; pass --left-topic")
+        how["left"] = "matches --right-topic"
+    elif not asked.left and not asked.right:
+        for left_default, right_default in zip(LEFT_IMAGE_DEFAULTS, RIGHT_IMAGE_DEFAULTS, strict=True):
+            if types.get(left_default) in IMAGE_TYPES and types.get(right_default) in IMAGE_TYPES:
+                left, right = left_default, right_default
+                how["left"] = how["right"] = "dVRK default"
+                break
+        else:
+            left, right = _detect_image_pair(path, types)
+            how["left"] = how["right"] = "auto-detected"
+    if left == right:
+        raise InputError(path, f"left and right image topics are the same ({left})")
+    return left, right
+
+
+def _swap_side(topic: str, side: str, other: str) -> str | None:
+    return topic.replace(side, other) if side in topic else None
+
+
+def _detect_image_pair(path: Path, types: dict[str, str]) -> tuple[str, str]:
+    """The image topics that differ only by left/right. Raw before compressed, unrectified before
+    rectified (the camera info describes the raw images), then the shortest name."""
+    images = [t for t, kind in types.items() if kind in IMAGE_TYPES]
+    if not images:
+        raise InputError(path, "no image topic found (no sensor_msgs/Image or sensor_msgs/CompressedImage)")
+    pairs = []
+    for left in images:
+        if "left" in left:
+            right = left.replace("left", "right")
+            if right in images:
+                pairs.append((types[left] == COMPRESSED_IMAGE, "rect" in left, len(left), left, right))
+    if not pairs:
+        raise InputError(path, f"no left/right image topic pair found among {', '.join(images)}; "
+                               "pass --left-topic and --right-topic")
+    pairs.sort()
+    if len(pairs) > 1:
+        log.warning("warning: %s: several stereo image topics; using %s and %s (others: %s)", path,
+                    pairs[0][3], pairs[0][4], ", ".join(p[3] for p in pairs[1:]))
+    return pairs[0][3], pairs[0][4]
+
+
+def camera_info_topic(image_topic: str) -> str:
+    """The CameraInfo topic ROS publishes beside an image topic: /ns/left/image_raw[/compressed] ->
+    /ns/left/camera_info."""
+    base = re.sub(r"/(compressed|theora|ffmpeg|h264)$", "", image_topic)
+    return base.rsplit("/", 1)[0] + "/camera_info"
+
+
+def _choose_info(path: Path, types: dict[str, str], asked: str | None, image_topic: str, side: str,
+                 option: str, how: dict[str, str]) -> str | None:
+    if asked:
+        how[f"{side}_info"] = "given"
+        return _check_given(path, types, asked, (CAMERA_INFO,), option)
+    beside = camera_info_topic(image_topic)
+    if types.get(beside) == CAMERA_INFO:
+        how[f"{side}_info"] = "beside the image topic"
+        return beside
+    candidates = [t for t, kind in types.items() if kind == CAMERA_INFO and side in t]
+    if len(candidates) == 1:
+        how[f"{side}_info"] = "auto-detected"
+        return candidates[0]
+    return None
+
+
+def _choose_force(path: Path, types: dict[str, str], asked: str | None, how: dict[str, str]) -> str:
+    if asked:
+        how["force"] = "given"
+        return _check_given(path, types, asked, (WRENCH_STAMPED,), "--force-topic")
+    for topic in FORCE_DEFAULTS:
+        if types.get(topic) == WRENCH_STAMPED:
+            how["force"] = "default"
+            return topic
+    wrenches = [t for t, kind in types.items() if kind == WRENCH_STAMPED]
+    sensor_like = [t for t in wrenches if re.search(r"netft|ati|force_sensor|ft_sensor", t, re.IGNORECASE)]
+    not_arms = [t for t in wrenches if t.strip("/").split("/")[0] not in DVRK_ARM_NAMESPACES]
+    for tier in (sensor_like, not_arms):
+        if len(tier) == 1:
+            how["force"] = "auto-detected (the only force sensor WrenchStamped topic)"
+            return tier[0]
+        if len(tier) > 1:
+            raise InputError(path, f"several WrenchStamped topics could be the force sensor ({', '.join(tier)}); "
+                                   "pick one with --force-topic")
+    if wrenches:
+        raise InputError(path, f"no force sensor topic: the WrenchStamped topics ({', '.join(wrenches)}) are dVRK "
+                               "arm estimates; pass --force-topic to use one anyway")
+    raise InputError(path, f"no force topic: no geometry_msgs/WrenchStamped topic (looked for "
+                           f"{', '.join(FORCE_DEFAULTS)}); pass --force-topic")
+
+
+def _choose_pose(path: Path, types: dict[str, str], asked: str | None, how: dict[str, str]) -> str | None:
+    if asked == NO_TOPIC:
+        how["pose"] = "left out (--pose-topic none)"
+        return None
+    if asked:
+        how["pose"] = "given"
+        return _check_given(path, types, asked, POSE_TYPES, "--pose-topic")
+    for topic in POSE_DEFAULTS:
+        if types.get(topic) in POSE_TYPES:
+            how["pose"] = "dVRK default"
+            return topic
+    namespaced = [t for t, kind in types.items() if kind in POSE_TYPES and t.endswith("/ECM/measured_cp")]
+    if len(namespaced) == 1:
+        how["pose"] = "auto-detected"
+        return namespaced[0]
+    how["pose"] = "none found (the recording will have no ECM pose)"
+    return None
+
+
+# -- scanning -------------------------------------------------------------------------------------
+def header_stamp_ns(msg) -> int:
+    stamp = msg.header.stamp
+    return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def acquisition_ns(header_ns: np.ndarray, receive_ns: np.ndarray) -> tuple[np.ndarray, int]:
+    """header.stamp where it is set, the bag receive time where it is 0 -> (stamps, how many fell back)."""
+    header_ns = np.asarray(header_ns, dtype=np.int64)
+    unset = header_ns == 0
+    return np.where(unset, np.asarray(receive_ns, dtype=np.int64), header_ns), int(unset.sum())
+
+
+@dataclass
+class ImageStream:
+    """One image topic as scanned: stamps of every message, the look of the first one."""
+
+    topic: str
+    msgtype: str
+    header_ns: array = field(default_factory=lambda: array("q"))
+    receive_ns: array = field(default_factory=lambda: array("q"))
+    encoding: str = ""  # Image encoding, or CompressedImage format
+    width: int = 0
+    height: int = 0
+
+    @property
+    def count(self) -> int:
+        return len(self.header_ns)
+
+    @property
+    def stamps_ns(self) -> np.ndarray:
+        return acquisition_ns(np.frombuffer(self.header_ns, np.int64), np.frombuffer(self.receive_ns, np.int64))[0]
+
+    @property
+    def fallback_count(self) -> int:
+        return int((np.frombuffer(self.header_ns, np.int64) == 0).sum())
+
+
+@dataclass
+class Series:
+    """A stamped numeric series (force or pose) sorted by acquisition time, duplicates dropped."""
+
+    topic: str
+    stamps_ns: np.ndarray  # (N,) int64
+    values: np.ndarray  # (N, 6) fx fy fz tx ty tz (N, N*m), or (N, 7) x y z qx qy qz qw (m)
+    frame_id: str
+    fallback_count: int = 0
+    duplicate_count: int = 0
+
+
+@dataclass
+class BagScan:
+    path: Path
+    kind: str
+    choice: TopicChoice
+    counts: dict[str, int]
+    receive_ns: dict[str, np.ndarray]  # topic -> bag receive times (every topic scanned)
+    left: ImageStream
+    right: ImageStream
+    force: Series
+    pose: Series | None
+    left_info: object | None  # the first rosbags CameraInfo message of each side
+    right_info: object | None
+
+
+def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: bool = False,
+             progress: bool = True) -> BagScan:
+    """One streaming pass: image stamps, force, pose and the first camera info of each side (and the
+    receive times of every topic when `all_topics`, for `inspect-bag`)."""
+    types = topic_types(reader)
+    wanted = {choice.left, choice.right, choice.force, choice.left_info, choice.right_info, choice.pose} - {None}
+    topics = set(types) if all_topics else wanted
+    connections = [c for c in reader.connections if c.topic in topics]
+    counts = {name: info.msgcount for name, info in reader.topics.items()}
+    receive = {t: array("q") for t in topics}
+    left, right = ImageStream(choice.left, types[choice.left]), ImageStream(choice.right, types[choice.right])
+    images = {choice.left: left, choice.right: right}
+    infos: dict[str, object] = {}
+    force_header, force_receive, force_values, force_frames = array("q"), array("q"), array("d"), set()
+    pose_header, pose_receive, pose_values, pose_frames = array("q"), array("q"), array("d"), set()
+    total = sum(counts[t] for t in topics)
+    with tqdm(total=total, desc=f"scan {path.name}", unit="msg", disable=not progress, mininterval=0.5) as bar:
+        for connection, receive_ns, raw in bag_messages(reader, path, connections):
+            topic = connection.topic
+            receive[topic].append(receive_ns)
+            bar.update()
+            if topic not in wanted:
+                continue
+            msg = _deserialize(reader, path, raw, connection)
+            if topic in images:
+                _scan_image(path, images[topic], msg, receive_ns)
+            elif topic == choice.force:
+                force_header.append(header_stamp_ns(msg))
+                force_receive.append(receive_ns)
+                f, t = msg.wrench.force, msg.wrench.torque
+                force_values.extend((f.x, f.y, f.z, t.x, t.y, t.z))
+                force_frames.add(msg.header.frame_id)
+            elif topic == choice.pose:
+                pose_header.append(header_stamp_ns(msg))
+                pose_receive.append(receive_ns)
+                p, q = _pose_fields(msg)
+                pose_values.extend((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
+                pose_frames.add(msg.header.frame_id)
+            else:  # camera info: the first message of each side describes the camera
+                infos.setdefault(topic, msg)
+    for stream in (left, right):
+        if stream.count == 0:
+            raise InputError(path, f"{stream.topic} has no messages")
+    force = _series(path, choice.force, force_header, force_receive, force_values, 6, force_frames)
+    pose = None
+    if choice.pose is not None:
+        pose = _series(path, choice.pose, pose_header, pose_receive, pose_values, 7, pose_frames)
+        norms = np.linalg.norm(pose.values[:, 3:], axis=1)
+        if (norms < 1e-6).any():
+            raise InputError(path, f"{choice.pose}: message {int(np.argmax(norms < 1e-6))}: quaternion has zero length")
+        pose.values[:, 3:] /= norms[:, None]
+    return BagScan(
+        path, bag_kind(path), choice, counts, {t: np.frombuffer(v, np.int64) for t, v in receive.items()},
+        left, right, force, pose, infos.get(choice.left_info), infos.get(choice.right_info),
+    )
+
+
+def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[object, int, bytes]]:
+    """The reader's messages, with rosbags' errors on a damaged bag turned into one-line InputErrors."""
+    if not connections:
+        return
+    try:
+        yield from reader.messages(connections=connections)
+    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError) as exc:
+        raise InputError(path, f"damaged bag ({_first_line(exc)})") from None
+
+
+def _deserialize(reader: AnyReader, path: Path, raw: bytes, connection):
+    try:
+        return reader.deserialize(raw, connection.msgtype)
+    except (AnyReaderError, ValueError, IndexError) as exc:
+        raise InputError(path, f"{connection.topic}: message cannot be decoded ({_first_line(exc)})") from None
+
+
+def _scan_image(path: Path, stream: ImageStream, msg, receive_ns: int) -> None:
+    index = stream.count
+    stream.header_ns.append(header_stamp_ns(msg))
+    stream.receive_ns.append(receive_ns)
+    if stream.msgtype == IMAGE:
+        encoding, width, height = msg.encoding, int(msg.width), int(msg.height)
+        if encoding not in RAW_ENCODINGS:
+            raise InputError(path, f"{stream.topic}: message {index}: unsupported image encoding '{encoding}' "
+                                   f"(supported: {', '.join(RAW_ENCODINGS)})")
+    else:
+        encoding = msg.format
+        if index and encoding == stream.encoding:
+            return  # decoding every compressed image twice would cost; pass 2 checks each size
+        try:
+            image = compressed_to_bgr(encoding, msg.data)
+        except UnsupportedImage as exc:
+            raise InputError(path, f"{stream.topic}: message {index}: {exc}") from None
+        height, width = image.shape[:2]
+    if index == 0:
+        stream.encoding, stream.width, stream.height = encoding, width, height
+    elif (width, height) != (stream.width, stream.height):
+        raise InputError(path, f"{stream.topic}: message {index} is {width}x{height}, the first one "
+                               f"{stream.width}x{stream.height}")
+
+
+def _pose_fields(msg):
+    """(position, orientation) of a PoseStamped or TransformStamped message."""
+    if hasattr(msg, "pose"):
+        return msg.pose.position, msg.pose.orientation
+    return msg.transform.translation, msg.transform.rotation
+
+
+def _series(path: Path, topic: str, header: array, receive: array, values: array, width: int,
+            frames: set[str]) -> Series:
+    if len(header) == 0:
+        raise InputError(path, f"{topic} has no messages")
+    stamps, fallback = acquisition_ns(np.frombuffer(header, np.int64), np.frombuffer(receive, np.int64))
+    table = np.frombuffer(values, np.float64).reshape(-1, width).copy()
+    bad = ~np.isfinite(table).all(axis=1)
+    if bad.any():
+        raise InputError(path, f"{topic}: message {int(np.argmax(bad))}: NaN or inf value")
+    order = np.argsort(stamps, kind="stable")
+    stamps, table = stamps[order], table[order]
+    keep = np.concatenate([[True], np.diff(stamps) > 0])
+    frames.discard("")
+    frame_id = frames.pop() if len(frames) == 1 else ""
+    return Series(topic, stamps[keep], table[keep], frame_id, fallback, int((~keep).sum()))
+
+
+# -- pairing --------------------------------------------------------------------------------------
+def default_pair_tolerance_ns(stamps_ns: np.ndarray) -> int:
+    """Half the median frame period of a stream (0 for fewer than two distinct stamps)."""
+    steps = np.diff(np.unique(stamps_ns))
+    return int(np.median(steps)) // 2 if len(steps) else 0
+
+
+def pair_stamps(left_ns: np.ndarray, right_ns: np.ndarray, tolerance_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pair left and right frames by stamp: each left frame with its nearest right frame, kept when
+    that right frame's nearest left frame is the same one (mutual nearest neighbours) and the two
+    stamps are at most `tolerance_ns` apart. Stamps need not be sorted. Returns the indices
+    (left_i, right_i) of the pairs, ordered by left stamp; each frame is in at most one pair."""
+    left_ns, right_ns = np.asarray(left_ns, np.int64), np.asarray(right_ns, np.int64)
+    if len(left_ns) == 0 or len(right_ns) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo, ro = np.argsort(left_ns, kind="stable"), np.argsort(right_ns, kind="stable")
+    ls, rs = left_ns[lo], right_ns[ro]
+    to_right, to_left = _nearest(ls, rs), _nearest(rs, ls)
+    keep = (to_left[to_right] == np.arange(len(ls))) & (np.abs(ls - rs[to_right]) <= tolerance_ns)
+    return lo[keep], ro[to_right[keep]]
+
+
+def _nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each value of sorted `a`, the index of the nearest value in sorted `b` (ties: the earlier)."""
+    pos = np.clip(np.searchsorted(b, a), 1, len(b) - 1) if len(b) > 1 else np.zeros(len(a), np.int64)
+    if len(b) > 1:
+        earlier = np.abs(a - b[pos - 1]) <= np.abs(b[pos] - a)
+        pos = np.where(earlier, pos - 1, pos)
+    return pos
+
+
+@dataclass
+class PairPlan:
+    """The stereo frames of the recording: pair k has stamp `stamps_ns[k]` (the left frame's) and is
+    made of the left and right messages whose acquisition stamps are given."""
+
+    stamps_ns: np.ndarray  # (K,) strictly increasing
+    left_ns: np.ndarray
+    right_ns: np.ndarray
+    tolerance_ns: int
+    unpaired_left: int
+    unpaired_right: int
+
+    @property
+    def max_offset_ns(self) -> int:
+        return int(np.abs(self.left_ns - self.right_ns).max()) if len(self.stamps_ns) else 0
+
+
+def plan_pairs(scan: BagScan, tolerance_ns: int | None = None) -> PairPlan:
+    """Pair the scanned frames; InputError when no frame pairs."""
+    left_ns, right_ns = scan.left.stamps_ns, scan.right.stamps_ns
+    if tolerance_ns is None:
+        tolerance_ns = default_pair_tolerance_ns(left_ns)
+    li, ri = pair_stamps(left_ns, right_ns, tolerance_ns)
+    if len(li) == 0:
+        raise InputError(
+            scan.path, f"left and right images never pair within {tolerance_ns / 1e6:.1f} ms ({scan.left.topic} "
+            f"stamps {_span(left_ns)}, {scan.right.topic} stamps {_span(right_ns)}); check the topics or "
+            "--pair-tolerance-ms",
+        )
+    return PairPlan(left_ns[li], left_ns[li], right_ns[ri], int(tolerance_ns),
+                    len(left_ns) - len(li), len(right_ns) - len(ri))
+
+
+def _span(stamps: np.ndarray) -> str:
+    return f"{stamps.min() / 1e9:.3f}..{stamps.max() / 1e9:.3f} s" if len(stamps) else "none"
+
+
+# -- camera model ---------------------------------------------------------------------------------
+def bag_camera_info(path: Path, topic: str, msg, frame_id: str) -> CameraInfo:
+    """A rosbags CameraInfo message (ROS 1 names D K R P or ROS 2 names d k r p) in the layout's frame."""
+
+    def values(name: str) -> np.ndarray:
+        return np.asarray(getattr(msg, name) if hasattr(msg, name) else getattr(msg, name.upper()), np.float64)
+
+    roi = msg.roi
+    info = CameraInfo(
+        0, frame_id, int(msg.height), int(msg.width), msg.distortion_model or "plumb_bob", values("d"),
+        values("k").reshape(3, 3), values("r").reshape(3, 3), values("p").reshape(3, 4),
+        int(msg.binning_x), int(msg.binning_y),
+        (int(roi.x_offset), int(roi.y_offset), int(roi.height), int(roi.width), bool(roi.do_rectify)),
+    )
+    if not (np.isfinite(info.p).all() and info.p[0, 0] > 0 and info.p[1, 1] > 0):
+        raise InputError(path, f"{topic}: P has no focal length (camera not calibrated); pass --calibration FILE")
+    return info
+
+
+def camera_model(scan: BagScan, calibration: StereoCalibration | None, calibration_path: Path | None,
+                 ) -> tuple[CameraInfo, CameraInfo, TFMessage, str]:
+    """Camera infos and the left -> right transform, from the calibration file when given, else from
+    the bag's CameraInfo topics -> (left, right, tf, where from). Checks the image size."""
+    size = (scan.left.width, scan.left.height)
+    if (scan.right.width, scan.right.height) != size:
+        raise InputError(scan.path, f"left images are {size[0]}x{size[1]}, right images "
+                                    f"{scan.right.width}x{scan.right.height}")
+    if calibration is not None:
+        if (calibration.width, calibration.height) != size:
+            raise InputError(calibration_path, f"image size {calibration.width}x{calibration.height} differs from "
+                                               f"the bag's images ({size[0]}x{size[1]})")
+        left, right = camera_infos(calibration, 0)
+        return left, right, stereo_tf(calibration, 0), f"calibration file {calibration_path}"
+    choice = scan.choice
+    for side, topic, msg in (("left", choice.left_info, scan.left_info), ("right", choice.right_info, scan.right_info)):
+        if topic is None:
+            raise InputError(scan.path, f"no {side} camera_info topic (looked for "
+                                        f"{camera_info_topic(getattr(choice, side))}); pass --{side}-info-topic "
+                                        "or --calibration FILE")
+        if msg is None:
+            raise InputError(scan.path, f"{topic} has no messages; pass --calibration FILE")
+    left = bag_camera_info(scan.path, choice.left_info, scan.left_info, layout.LEFT_FRAME)
+    right = bag_camera_info(scan.path, choice.right_info, scan.right_info, layout.RIGHT_FRAME)
+    for topic, info in ((choice.left_info, left), (choice.right_info, right)):
+        if (info.width, info.height) != size:
+            raise InputError(scan.path, f"{topic} is for {info.width}x{info.height} images, the images are "
+                                        f"{size[0]}x{size[1]}")
+    # ROS: right P[0, 3] = -fx * baseline (m); the right camera sits `baseline` along +x of the left one.
+    baseline_m = -right.p[0, 3] / right.p[0, 0]
+    if not baseline_m > 0:
+        raise InputError(scan.path, f"{choice.right_info}: P[0,3] = {right.p[0, 3]:g} gives no stereo baseline "
+                                    "(monocular calibrations?); pass --calibration FILE")
+    tf = TFMessage([TransformStamped(0, layout.LEFT_FRAME, layout.RIGHT_FRAME, (baseline_m, 0.0, 0.0),
+                                     (0.0, 0.0, 0.0, 1.0))])
+    return left, right, tf, f"camera_info topics {choice.left_info}, {choice.right_info}"
+
+
+# -- images ---------------------------------------------------------------------------------------
+def raw_image_to_bgr(height: int, width: int, encoding: str, is_bigendian: int, step: int,
+                     data: np.ndarray | bytes) -> np.ndarray:
+    """sensor_msgs/Image fields -> (height, width, 3) BGR uint8. 16-bit values are scaled to 8 bits
+    over their full range (v * 255 / 65535); Bayer mosaics are demosaiced (bilinear)."""
+    if encoding not in RAW_ENCODINGS:
+        raise UnsupportedImage(f"unsupported image encoding '{encoding}'")
+    channels, depth = RAW_ENCODINGS[encoding]
+    row_bytes = width * channels * depth
+    buffer = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
+    if step < row_bytes or len(buffer) < step * (height - 1) + row_bytes:
+        raise UnsupportedImage(f"{encoding} image of {width}x{height} needs {row_bytes} bytes a row, "
+                               f"has step {step} and {len(buffer)} bytes")
+    if len(buffer) < step * height:  # the last row may lack its padding
+        buffer = np.concatenate([buffer, np.zeros(step * height - len(buffer), np.uint8)])
+    rows = buffer[: step * height].reshape(height, step)[:, :row_bytes]
+    if depth == 2:
+        pixels = np.ascontiguousarray(rows).view(">u2" if is_bigendian else "<u2").astype(np.uint16)
+        pixels = ((pixels.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    else:
+        pixels = rows
+    family = _ENCODING_FAMILY.get(encoding)
+    if family in ("uyvy", "yuyv"):
+        image = pixels.reshape(height, width, 2)
+    else:
+        image = pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
+    image = np.ascontiguousarray(image)
+    if family is None:  # bgr8, 8UC3, bgr16
+        return image
+    return cv2.cvtColor(image, _COLOR_CODES[family])
+
+
+def compressed_format(fmt: str) -> str:
+    """The codec of a CompressedImage `format` ('jpeg', 'png', or image_transport's 'rgb8; jpeg
+    compressed bgr8') -> 'jpeg' or 'png'."""
+    text = fmt.lower()
+    if "compresseddepth" in text:
+        raise UnsupportedImage(f"unsupported image format '{fmt}' (compressedDepth is a depth image)")
+    if "jpeg" in text or "jpg" in text:
+        return "jpeg"
+    if "png" in text:
+        return "png"
+    raise UnsupportedImage(f"unsupported image format '{fmt}' (expected jpeg or png)")
+
+
+def compressed_to_bgr(fmt: str, data: np.ndarray | bytes) -> np.ndarray:
+    """CompressedImage data -> BGR uint8 (image_transport compresses colour images as bgr8)."""
+    compressed_format(fmt)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise UnsupportedImage(f"{fmt} image data cannot be decoded")
+    return image
+
+
+# -- conversion -----------------------------------------------------------------------------------
+def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, options: ConvertOptions | None = None,
+                topics: BagTopics | None = None, calibration: str | Path | None = None,
+                pair_tolerance_ns: int | None = None) -> Path:
+    """Convert a ROS 1 or ROS 2 bag to a recording MCAP at `out`. Returns `out`.
+
+    `topics`: remapped topic names (None: dVRK defaults / auto-detection). `calibration`: a
+    calibration.yaml used instead of the bag's CameraInfo topics. `pair_tolerance_ns`: largest
+    left/right stamp difference of a stereo pair (default half the median left frame period)."""
+    options = options or ConvertOptions()
+    src, out = Path(src), Path(out)
+    if options.image_format not in ("jpeg", "png"):
+        raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    calib = StereoCalibration.load(calibration) if calibration is not None else None
+    with open_bag(src) as reader:
+        choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)
+        scan = scan_bag(reader, src, choice, progress=options.progress)
+        plan = plan_pairs(scan, pair_tolerance_ns)
+        info_l, info_r, tf, camera_source = camera_model(scan, calib, Path(calibration) if calibration else None)
+        check_force_span(scan, plan, options.force_gap_tolerance_ns)
+        _warn_about(scan, plan)
+        record = layout.RecordingMeta(
+            recording_id=src.stem if src.is_file() else src.name,
+            source=str(src.resolve()),
+            converter=f"vfdata convert ({scan.kind} bag)",
+            converter_version=__version__,
+            extra={
+                "bag_left_topic": choice.left, "bag_right_topic": choice.right,
+                "bag_force_topic": choice.force, "bag_pose_topic": choice.pose or "",
+                "bag_force_frame_id": scan.force.frame_id,
+                "bag_pose_frame_id": scan.pose.frame_id if scan.pose else "",
+                "camera_info_source": camera_source,
+                "pair_tolerance_ns": str(plan.tolerance_ns),
+                "pair_max_offset_ns": str(plan.max_offset_ns),
+                "unpaired_left_frames": str(plan.unpaired_left),
+                "unpaired_right_frames": str(plan.unpaired_right),
+            },
+        )
+        _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
+    return out
+
+
+def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int) -> None:
+    force_ns, frame_ns = scan.force.stamps_ns, plan.stamps_ns
+    if force_ns[-1] < frame_ns[0] or force_ns[0] > frame_ns[-1]:
+        raise InputError(scan.path, f"{scan.force.topic}: force stamps {_span(force_ns)} lie outside the video "
+                                    f"span {_span(frame_ns)} (different clocks?)")
+    try:
+        check_force_covers(scan.path, force_ns, frame_ns, tolerance_ns)
+    except InputError as exc:
+        raise InputError(scan.path, f"{scan.force.topic}: {exc.problem}") from None
+
+
+def _warn_about(scan: BagScan, plan: PairPlan) -> None:
+    for topic, count, total in (
+        (scan.left.topic, scan.left.fallback_count, scan.left.count),
+        (scan.right.topic, scan.right.fallback_count, scan.right.count),
+        (scan.force.topic, scan.force.fallback_count, len(scan.force.stamps_ns)),
+        *([(scan.pose.topic, scan.pose.fallback_count, len(scan.pose.stamps_ns))] if scan.pose else []),
+    ):
+        if count:
+            log.warning("warning: %s: %s: %d of %d messages have header.stamp 0; using the bag receive time",
+                        scan.path, topic, count, total)
+    for series in (scan.force, scan.pose):
+        if series is not None and series.duplicate_count:
+            log.warning("warning: %s: %s: %d messages repeat an earlier stamp; kept the first", scan.path,
+                        series.topic, series.duplicate_count)
+    if plan.unpaired_left or plan.unpaired_right:
+        log.warning("warning: %s: %d left and %d right frames have no partner within %.1f ms; left out",
+                    scan.path, plan.unpaired_left, plan.unpaired_right, plan.tolerance_ns / 1e6)
+    if scan.pose is not None and (scan.pose.stamps_ns[-1] < plan.stamps_ns[0]
+                                  or scan.pose.stamps_ns[0] > plan.stamps_ns[-1]):
+        log.warning("warning: %s: %s: pose stamps %s lie outside the video span %s", scan.path, scan.pose.topic,
+                    _span(scan.pose.stamps_ns), _span(plan.stamps_ns))
+
+
+def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan) -> Iterator[tuple[int, object, object]]:
+    """(k, left message, right message) for every pair of the plan, in pair order, streaming the bag.
+    A message is found by its acquisition stamp; one waits in memory only until its partner (and the
+    pairs before it) have been read, a frame or two in a normal bag."""
+    wanted = ({int(t): k for k, t in enumerate(plan.left_ns)}, {int(t): k for k, t in enumerate(plan.right_ns)})
+    side_of = {scan.left.topic: 0, scan.right.topic: 1}
+    connections = [c for c in reader.connections if c.topic in side_of]
+    pending: dict[int, list] = {}
+    next_k = 0
+    for connection, receive_ns, raw in bag_messages(reader, scan.path, connections):
+        side = side_of[connection.topic]
+        msg = _deserialize(reader, scan.path, raw, connection)
+        stamp = header_stamp_ns(msg) or receive_ns
+        k = wanted[side].pop(stamp, None)
+        if k is None:
+            continue  # unpaired, or a repeated stamp whose first message was taken
+        slot = pending.setdefault(k, [None, None])
+        slot[side] = msg
+        while next_k in pending and None not in pending[next_k]:
+            left, right = pending.pop(next_k)
+            yield next_k, left, right
+            next_k += 1
+    if next_k != len(plan.stamps_ns):
+        raise InputError(scan.path, f"pair {next_k} went missing on the second pass (was the bag modified?)")
+
+
+def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrite: bool, options: ConvertOptions,
+           record: layout.RecordingMeta, info_l: CameraInfo, info_r: CameraInfo, tf: TFMessage) -> None:
+    encode_params = (
+        [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality] if options.image_format == "jpeg"
+        else [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    )
+    extension = ".jpg" if options.image_format == "jpeg" else ".png"
+    size = (scan.left.height, scan.left.width)
+    streams = (scan.left, scan.right)
+
+    def encode_one(stream: ImageStream, k: int, msg) -> bytes:
+        try:
+            if stream.msgtype == COMPRESSED_IMAGE:
+                image = compressed_to_bgr(msg.format, msg.data)
+                # A JPEG kept as JPEG is copied, not re-encoded: no second generation of losses.
+                passthrough = compressed_format(msg.format) == "jpeg" == options.image_format
+            else:
+                image = raw_image_to_bgr(int(msg.height), int(msg.width), msg.encoding, int(msg.is_bigendian),
+                                         int(msg.step), msg.data)
+                passthrough = False
+        except UnsupportedImage as exc:
+            raise InputError(scan.path, f"{stream.topic}: frame {k}: {exc}") from None
+        if image.shape[:2] != size:
+            raise InputError(scan.path, f"{stream.topic}: frame {k} is {image.shape[1]}x{image.shape[0]}, the "
+                                        f"first one {size[1]}x{size[0]}")
+        if passthrough:
+            return bytes(msg.data)
+        ok, data = cv2.imencode(extension, image, encode_params)
+        if not ok:
+            raise InputError(scan.path, f"{stream.topic}: frame {k}: image cannot be encoded")
+        return data.tobytes()
+
+    def encode(item) -> tuple[bytes, bytes]:
+        k, left, right = item
+        return encode_one(streams[0], k, left), encode_one(streams[1], k, right)
+
+    force, pose = scan.force, scan.pose
+    force_frame = force.frame_id or layout.SENSOR_FRAME
+    force_i = pose_i = 0
+    first = int(plan.stamps_ns[0])
+    for transform in tf.transforms:
+        transform.stamp_ns = first
+    with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer, \
+            ThreadPoolExecutor(max(1, options.workers)) as pool:
+        writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
+        writer.write(layout.TF_STATIC, tf)
+        frames = ordered_map(pool, encode, _stereo_messages(reader, scan, plan), window=4 * max(1, options.workers))
+        with tqdm(total=len(plan.stamps_ns), desc=f"convert {scan.path.name}", unit="frame",
+                  disable=not options.progress) as bar:
+            for k, (left_bytes, right_bytes) in enumerate(frames):
+                stamp = int(plan.stamps_ns[k])
+                # Samples up to this frame's stamp go first, so the file is in time order.
+                force_i = _write_force(writer, force, force_frame, force_i, stamp)
+                if pose is not None:
+                    pose_i = _write_pose(writer, pose, pose_i, stamp)
+                info_l.stamp_ns = info_r.stamp_ns = stamp
+                writer.write(layout.LEFT_INFO, info_l)
+                writer.write(layout.RIGHT_INFO, info_r)
+                writer.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, options.image_format,
+                                                                left_bytes))
+                writer.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, options.image_format,
+                                                                 right_bytes))
+                bar.update()
+        _write_force(writer, force, force_frame, force_i, None)
+        if pose is not None:
+            _write_pose(writer, pose, pose_i, None)
+
+
+def _write_force(writer: McapWriter, force: Series, frame_id: str, start: int, until_ns: int | None) -> int:
+    """Write force samples from `start` up to stamp `until_ns` (all when None); returns the next index."""
+    stop = len(force.stamps_ns) if until_ns is None else int(np.searchsorted(force.stamps_ns, until_ns, "right"))
+    for k in range(start, stop):
+        w = force.values[k]
+        writer.write(layout.WRENCH, WrenchStamped(int(force.stamps_ns[k]), frame_id, (w[0], w[1], w[2]),
+                                                  (w[3], w[4], w[5])))
+    return max(start, stop)
+
+
+def _write_pose(writer: McapWriter, pose: Series, start: int, until_ns: int | None) -> int:
+    stop = len(pose.stamps_ns) if until_ns is None else int(np.searchsorted(pose.stamps_ns, until_ns, "right"))
+    for k in range(start, stop):
+        v = pose.values[k]
+        writer.write(layout.ECM_POSE, PoseStamped(int(pose.stamps_ns[k]), layout.WORLD_FRAME, (v[0], v[1], v[2]),
+                                                  (v[3], v[4], v[5], v[6])))
+    return max(start, stop)
+
+
+def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
+    """Bag receive times (ns) of every topic, reading the whole bag."""
+    times: dict[str, array] = {}
+    with tqdm(total=reader.message_count, desc=f"read {path.name}", unit="msg", disable=not progress,
+              mininterval=0.5) as bar:
+        for connection, receive_ns, _raw in bag_messages(reader, path, reader.connections):
+            times.setdefault(connection.topic, array("q")).append(receive_ns)
+            bar.update()
+    return {topic: np.frombuffer(values, np.int64) for topic, values in times.items()}
+
+
+def topic_rates_hz(receive_ns: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean message rate of each topic over its receive times (0 for fewer than two messages)."""
+    rates = {}
+    for topic, times in receive_ns.items():
+        span = (int(times.max()) - int(times.min())) / 1e9 if len(times) > 1 else 0.0
+        rates[topic] = (len(times) - 1) / span if span > 0 else 0.0
+    return rates
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
