@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from rawfixtures import FRAME_NS, T0_NS, make_raw
 
+from vfdata.calibration import StereoCalibration
 from vfdata.cli import main
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder, read_force_csv
 from vfdata.errors import FormatError
@@ -162,6 +163,14 @@ def test_unrectified_calibration_gets_rectification(tmp_path):
     assert left.distortion_model == "plumb_bob" and left.d[0] == pytest.approx(-0.1)
     assert not np.allclose(left.r, np.eye(3))
     assert rec.stereo.baseline_mm == pytest.approx(np.linalg.norm([4.5, 0.05, 0.1]), rel=1e-3)
+    assert not rec.is_rectified
+    assert Recording.open(_convert(make_raw(tmp_path / "r2", n=2), tmp_path / "r2.mcap")).is_rectified
+    calib = StereoCalibration.load(src / "calibration.yaml")
+    frame = rec.frame(1)
+    expected = calib.rectify_pair(frame.left, frame.right)
+    rectified = rec.rectified_frame(1)
+    assert np.abs(rectified.left.astype(int) - expected[0].astype(int)).mean() < 1.0
+    assert np.abs(rectified.left.astype(int) - frame.left.astype(int)).mean() > 1.0
 
 
 def test_rostopic_force_export(tmp_path):

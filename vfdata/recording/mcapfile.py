@@ -143,6 +143,7 @@ class McapFile:
         self._cache: OrderedDict[int, bytes] = OrderedDict()
         self._cache_size = chunk_cache
         self._schemas: dict[int, tuple[str, str, bytes]] = {}
+        self._zstd = zstandard.ZstdDecompressor()
         self.size = self.path.stat().st_size
         self.index = self._build_index()
 
@@ -173,7 +174,12 @@ class McapFile:
         state["_file"] = None
         state["_pid"] = None
         state["_cache"] = OrderedDict()
+        del state["_zstd"]
         return state
+
+    def __setstate__(self, state) -> None:
+        self.__dict__.update(state)
+        self._zstd = zstandard.ZstdDecompressor()
 
     # -- chunks --------------------------------------------------------------------------------
     def chunk_records(self, chunk_id: int) -> bytes:
@@ -192,7 +198,7 @@ class McapFile:
     def _decompress(self, chunk: Chunk, raw: bytes) -> bytes:
         try:
             if chunk.compression == "zstd":
-                data = zstandard.ZstdDecompressor().decompress(raw, max_output_size=chunk.uncompressed_size)
+                data = self._zstd.decompress(raw, max_output_size=chunk.uncompressed_size)
             elif chunk.compression == "lz4":
                 import lz4.frame
 
@@ -212,8 +218,9 @@ class McapFile:
         return chunk.uncompressed_crc == 0 or zlib.crc32(self.chunk_records(chunk_id)) == chunk.uncompressed_crc
 
     # -- messages ------------------------------------------------------------------------------
-    def payload(self, channel_id: int, i: int) -> bytes:
-        """The CDR payload of the i-th message (in log-time order) of a channel."""
+    def payload(self, channel_id: int, i: int) -> bytes | memoryview:
+        """The CDR payload of the i-th message (in log-time order) of a channel: a view into the
+        cached chunk (no copy), or bytes for a message outside any chunk."""
         loc = self.index.messages[channel_id]
         chunk, offset = int(loc.chunk[i]), int(loc.offset[i])
         if chunk < 0:
@@ -222,7 +229,7 @@ class McapFile:
             return self.read_at(offset + _MESSAGE_HEAD, length - (_MESSAGE_HEAD - 9))
         records = self.chunk_records(chunk)
         length = struct.unpack_from("<Q", records, offset + 1)[0]
-        return records[offset + _MESSAGE_HEAD: offset + 9 + length]
+        return memoryview(records)[offset + _MESSAGE_HEAD: offset + 9 + length]
 
     def payload_matrix(self, channel_id: int) -> list[np.ndarray]:
         """All payloads of a channel as (N_i, L_i) uint8 matrices, one per distinct payload length

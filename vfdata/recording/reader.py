@@ -164,6 +164,37 @@ class Recording:
     def camera(self) -> PinholeCamera:
         return self.stereo.left
 
+    @cached_property
+    def is_rectified(self) -> bool:
+        """True when the stored images are already rectified (no distortion, identity R, P = [K|t])."""
+        rectified = True
+        for info in self.camera_infos:
+            rectified &= bool(
+                np.allclose(info.d, 0) and np.allclose(np.asarray(info.r).reshape(3, 3), np.eye(3))
+                and np.allclose(np.asarray(info.k).reshape(3, 3), np.asarray(info.p).reshape(3, 4)[:, :3])
+            )
+        return rectified
+
+    @cached_property
+    def _rectify_maps(self):
+        maps = []
+        for info in self.camera_infos:
+            k, p = np.asarray(info.k).reshape(3, 3), np.asarray(info.p).reshape(3, 4)
+            maps.append(cv2.initUndistortRectifyMap(
+                k, np.asarray(info.d), np.asarray(info.r).reshape(3, 3), p[:, :3], (int(info.width), int(info.height)),
+                cv2.CV_16SC2,
+            ))
+        return maps
+
+    def rectified_frame(self, i: int) -> StereoFrame:
+        """Stereo frame i, rectified with the camera_info (unchanged when already rectified)."""
+        frame = self.frame(i)
+        if self.is_rectified:
+            return frame
+        (l1, l2), (r1, r2) = self._rectify_maps
+        return StereoFrame(i, frame.stamp_ns, cv2.remap(frame.left, l1, l2, cv2.INTER_LINEAR),
+                           cv2.remap(frame.right, r1, r2, cv2.INTER_LINEAR))
+
     # -- frames ----------------------------------------------------------------------------------
     @cached_property
     def frame_times_ns(self) -> np.ndarray:
