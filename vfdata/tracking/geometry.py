@@ -63,6 +63,7 @@ class TrackerOptions:
     omega_0: float = 30.0
     output_scale_mm: float = 10.0  # SIREN output unit, in mm of displacement
     llr_regularization: float = 1e-3
+    llr_relative: bool = True  # measure LLR residuals from their value on the frame the weights come from
     flow_max_forward_backward_px: float = 1.0
     reference_image: np.ndarray | None = None  # geometry+: the left image of the reference frame
 
@@ -119,6 +120,7 @@ class GeometryTracker:
         self._ref_weights = torch.from_numpy(
             reconstruction_weights(self.reference, self._ref_neighbours.numpy(), opt.llr_regularization)
         ).float()
+        self._ref_rest = self._rest_residual(self._reference_t, self._ref_neighbours, self._ref_weights)
         self._prev_image = None if opt.reference_image is None else to_gray(opt.reference_image)
         self._prev_visible = np.ones(len(self.reference), dtype=bool)
 
@@ -162,6 +164,7 @@ class GeometryTracker:
             reconstruction_weights(previous, prev_neighbours, opt.llr_regularization)
         ).float()
         prev_neighbours = torch.from_numpy(prev_neighbours)
+        prev_rest = self._rest_residual(torch.from_numpy(previous).float(), prev_neighbours, prev_weights)
 
         use_chamfer = len(cloud) > 0 and visible.any()
         if use_chamfer:
@@ -177,12 +180,10 @@ class GeometryTracker:
                 _, nearest = tree.query(moving.detach().numpy())
                 target = cloud_t[torch.from_numpy(nearest)]
                 loss = loss + opt.lambda_chamfer * (moving - target).square().sum(dim=1).mean()
-            loss = loss + opt.lambda_ref * llr_residual(points, self._ref_neighbours, self._ref_weights).square().sum(
-                dim=1
-            ).mean()
-            loss = loss + opt.lambda_prev * llr_residual(points, prev_neighbours, prev_weights).square().sum(
-                dim=1
-            ).mean()
+            ref_residual = llr_residual(points, self._ref_neighbours, self._ref_weights) - self._ref_rest
+            loss = loss + opt.lambda_ref * ref_residual.square().sum(dim=1).mean()
+            prev_residual = llr_residual(points, prev_neighbours, prev_weights) - prev_rest
+            loss = loss + opt.lambda_prev * prev_residual.square().sum(dim=1).mean()
             if flow is not None:
                 loss = loss + opt.lambda_flow * self._flow_loss(points, *flow)
             self._optimizer.zero_grad(set_to_none=True)
@@ -194,6 +195,15 @@ class GeometryTracker:
         visible = self.visibility(self._points, mask)
         self._prev_visible = visible
         return self._points.copy(), visible
+
+    def _rest_residual(self, points: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """LLE weights leave a small residual on curved, regularised neighbourhoods (largest at the
+        border, pointing outward); penalising it as is would pull the points together, so residuals
+        are measured from their value on the frame the weights were computed on (option
+        `llr_relative`), which makes that frame a zero of the LLR terms."""
+        if not self.options.llr_relative:
+            return torch.zeros_like(points)
+        return llr_residual(points, neighbours, weights)
 
     def _positions(self) -> torch.Tensor:
         return self._reference_t + (self._net(self._input) - self._offset) * self.options.output_scale_mm
