@@ -27,6 +27,7 @@ import re
 from array import array
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -122,8 +123,9 @@ def bag_kind(path: str | Path) -> str:
     return "ROS 1" if Path(path).suffix == ".bag" else "ROS 2"
 
 
-def open_bag(path: str | Path) -> AnyReader:
-    """An open `rosbags` reader (close it, or use it in a `with`). ROS 2 bags recorded without message
+@contextmanager
+def open_bag(path: str | Path) -> Iterator[AnyReader]:
+    """`with open_bag(path) as reader:` an open `rosbags` reader. ROS 2 bags recorded without message
     definitions are read with the standard ROS 2 types."""
     path = Path(path)
     if not path.exists():
@@ -135,7 +137,10 @@ def open_bag(path: str | Path) -> AnyReader:
         reader.open()
     except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, FileNotFoundError, KeyError, ValueError) as exc:
         raise InputError(path, f"cannot read the bag ({_first_line(exc)})") from None
-    return reader
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,424 @@
+"""ROS 1 and ROS 2 bags -> recording MCAP. The bags are written here with `rosbags` (dVRK topic names,
+both ECM pose types, raw and compressed images) and the converted file is checked topic by topic,
+value by value, through `vfdata.Recording`."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from rawfixtures import calibration
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from vfdata.cli import main
+from vfdata.commands.inspect_bag import inspect_bag_text
+from vfdata.conversion import bags
+from vfdata.conversion.bags import BagTopics, convert_bag
+from vfdata.conversion.raw_folder import ConvertOptions
+from vfdata.errors import InputError, OutputExistsError
+from vfdata.recording import layout
+from vfdata.recording.reader import Recording
+
+T0_NS = 1_700_000_000_123_456_789
+FRAME_NS = 33_333_333
+FORCE_NS = 1_000_000
+LEFT, RIGHT = "/jhu_daVinci/left/image_raw", "/jhu_daVinci/right/image_raw"
+LEFT_INFO, RIGHT_INFO = "/jhu_daVinci/left/camera_info", "/jhu_daVinci/right/camera_info"
+FX, CX, CY, BASELINE_M = 300.0, 31.5, 23.5, 0.0045
+PNG = ConvertOptions(image_format="png", progress=False)
+
+
+@dataclass
+class BagSpec:
+    """What to write, and (filled in by `write_bag`) what was written."""
+
+    ros2: bool = False
+    storage: StoragePlugin = StoragePlugin.SQLITE3
+    frames: int = 8
+    width: int = 64
+    height: int = 48
+    encoding: str = "bgr8"  # or "compressed" (JPEG), "compressed_png", "rgb8", "mono8", ...
+    pose_type: str | None = "PoseStamped"
+    left: str = LEFT
+    right: str = RIGHT
+    force_topics: tuple[str, ...] = ("/netft_data",)
+    camera_info: bool = True
+    right_offset_ns: int = 2_000_000  # right camera stamps lag the left ones
+    extra_right_ns: tuple[int, ...] = ()  # right frames with no left partner
+    force_shift_ns: int = 0
+    zero_stamps: bool = False  # image headers left at 0
+    with_images: bool = True
+    # filled in
+    images: list = field(default_factory=list)
+    frame_ns: np.ndarray | None = None
+    force_ns: np.ndarray | None = None
+    wrench: np.ndarray | None = None
+    pose_ns: np.ndarray | None = None
+    pose: np.ndarray | None = None
+
+
+def pattern(spec: BagSpec, i: int, side: int) -> np.ndarray:
+    rng = np.random.default_rng(10 * i + side)
+    image = rng.integers(0, 256, (spec.height, spec.width, 3), dtype=np.uint8)
+    return cv2.GaussianBlur(image, (5, 5), 0)
+
+
+def write_bag(path: Path, spec: BagSpec) -> BagSpec:
+    ts = get_typestore(Stores.ROS2_HUMBLE if spec.ros2 else Stores.ROS1_NOETIC)
+    T = ts.types
+    Time = T["builtin_interfaces/msg/Time"]
+
+    def header(stamp_ns: int, frame: str):
+        time = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+        if spec.ros2:
+            return T["std_msgs/msg/Header"](stamp=time, frame_id=frame)
+        return T["std_msgs/msg/Header"](seq=0, stamp=time, frame_id=frame)
+
+    def vec(x, y, z):
+        return T["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z))
+
+    n = spec.frames
+    spec.frame_ns = T0_NS + np.arange(n, dtype=np.int64) * FRAME_NS
+    spec.images = [(pattern(spec, i, 0), pattern(spec, i, 1)) for i in range(n)]
+    spec.force_ns = np.arange(spec.frame_ns[0] - 5 * FORCE_NS, spec.frame_ns[-1] + 5 * FORCE_NS, FORCE_NS,
+                              dtype=np.int64) + spec.force_shift_ns
+    phase = (spec.force_ns - T0_NS) / 1e9
+    spec.wrench = np.stack([np.sin(phase * 7 * k + k) * k for k in range(1, 7)], axis=1)
+    spec.pose_ns = spec.frame_ns[::2] + 1_000_000
+    angles = 0.05 * np.arange(len(spec.pose_ns))
+    spec.pose = np.stack([0.1 + 0 * angles, 0.2 + 0.001 * np.arange(len(angles)), 0.3 + 0 * angles,
+                          np.sin(angles / 2), 0 * angles, 0 * angles, np.cos(angles / 2)], axis=1)
+
+    messages = []  # (receive_ns, topic, msgtype, message)
+
+    def image_msg(image: np.ndarray, stamp: int, frame: str):
+        if spec.encoding.startswith("compressed"):
+            fmt = "png" if spec.encoding == "compressed_png" else "jpeg"
+            data = cv2.imencode("." + fmt.replace("jpeg", "jpg"), image)[1].ravel()
+            fmt = "bgr8; png compressed bgr8" if fmt == "png" else "rgb8; jpeg compressed bgr8"
+            return "sensor_msgs/msg/CompressedImage", T["sensor_msgs/msg/CompressedImage"](
+                header=header(stamp, frame), format=fmt, data=data)
+        if spec.encoding == "rgb8":
+            pixels = image[..., ::-1]
+        elif spec.encoding == "mono8":
+            pixels = image[..., 1]
+        else:
+            pixels = image
+        pixels = np.ascontiguousarray(pixels)
+        step = spec.width * (pixels.shape[2] if pixels.ndim == 3 else 1)
+        return "sensor_msgs/msg/Image", T["sensor_msgs/msg/Image"](
+            header=header(stamp, frame), height=spec.height, width=spec.width, encoding=spec.encoding,
+            is_bigendian=0, step=step, data=pixels.ravel())
+
+    for i, stamp in enumerate(spec.frame_ns if spec.with_images else []):
+        left, right = spec.images[i]
+        l_stamp, r_stamp = int(stamp), int(stamp) + spec.right_offset_ns
+        for side_topic, image, st, frame in ((spec.left, left, l_stamp, "left"), (spec.right, right, r_stamp, "right")):
+            msgtype, msg = image_msg(image, 0 if spec.zero_stamps else st, frame)
+            messages.append((st + 5_000_000, side_topic, msgtype, msg))
+    for extra in spec.extra_right_ns:
+        msgtype, msg = image_msg(spec.images[0][1], int(extra), "right")
+        messages.append((int(extra) + 5_000_000, spec.right, msgtype, msg))
+    if spec.camera_info:
+        for i in range(3):
+            stamp = int(spec.frame_ns[0]) + i * 10 * FRAME_NS
+            for side_topic, tx in ((LEFT_INFO, 0.0), (RIGHT_INFO, -FX * BASELINE_M)):
+                K = [FX, 0, CX, 0, FX, CY, 0, 0, 1]
+                P = [FX, 0, CX, tx, 0, FX, CY, 0, 0, 0, 1, 0]
+                names = ("d", "k", "r", "p") if spec.ros2 else ("D", "K", "R", "P")
+                values = (np.array([0.01, -0.02, 0.0, 0.0, 0.001]), np.array(K, float), np.eye(3).ravel(),
+                          np.array(P, float))
+                roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                            do_rectify=False)
+                msg = T["sensor_msgs/msg/CameraInfo"](
+                    header=header(stamp, "cam"), height=spec.height, width=spec.width, distortion_model="plumb_bob",
+                    **dict(zip(names, values, strict=True)), binning_x=0, binning_y=0, roi=roi)
+                messages.append((stamp + 1, side_topic, "sensor_msgs/msg/CameraInfo", msg))
+    Wrench = T["geometry_msgs/msg/Wrench"]
+    for j, topic in enumerate(spec.force_topics):
+        for stamp, w in zip(spec.force_ns, spec.wrench, strict=True):
+            msg = T["geometry_msgs/msg/WrenchStamped"](header=header(int(stamp), "ati_sensor"),
+                                                       wrench=Wrench(force=vec(*w[:3]), torque=vec(*w[3:])))
+            messages.append((int(stamp) + 200_000 + j, topic, "geometry_msgs/msg/WrenchStamped", msg))
+    if spec.pose_type:
+        for stamp, v in zip(spec.pose_ns, spec.pose, strict=True):
+            quat = T["geometry_msgs/msg/Quaternion"](x=v[3], y=v[4], z=v[5], w=v[6])
+            if spec.pose_type == "PoseStamped":
+                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=v[0], y=v[1], z=v[2]),
+                                                   orientation=quat)
+                msg = T["geometry_msgs/msg/PoseStamped"](header=header(int(stamp), "ECM_base"), pose=pose)
+            else:
+                transform = T["geometry_msgs/msg/Transform"](translation=vec(*v[:3]), rotation=quat)
+                msg = T["geometry_msgs/msg/TransformStamped"](header=header(int(stamp), "ECM_base"),
+                                                              child_frame_id="ECM", transform=transform)
+            messages.append((int(stamp) + 300_000, "/ECM/measured_cp", f"geometry_msgs/msg/{spec.pose_type}", msg))
+
+    messages.sort(key=lambda m: m[0])
+    if spec.ros2:
+        writer = Writer2(path, version=9, storage_plugin=spec.storage)
+        serialize = ts.serialize_cdr
+    else:
+        writer = Writer1(path)
+        serialize = ts.serialize_ros1
+    with writer:
+        connections = {}
+        for _, topic, msgtype, _msg in messages:
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+        for receive_ns, topic, msgtype, msg in messages:
+            writer.write(connections[topic], receive_ns, serialize(msg, msgtype))
+    return spec
+
+
+def check_recording(out: Path, spec: BagSpec) -> Recording:
+    rec = Recording.open(out)
+    assert rec.problems == []
+    n = spec.frames
+    # frames: the left stamps, both images carry them; pixels exact for PNG output
+    assert np.array_equal(rec.frame_times_ns, spec.frame_ns)
+    assert np.array_equal(rec.log_times_ns(layout.RIGHT_IMAGE), spec.frame_ns)
+    for i in range(n):
+        frame = rec.frame(i)
+        left, right = spec.images[i]
+        if spec.encoding == "mono8":
+            left, right = (cv2.cvtColor(img[..., 1], cv2.COLOR_GRAY2BGR) for img in (left, right))
+        assert np.array_equal(frame.left, left) and np.array_equal(frame.right, right)
+    # camera info every frame, with the bag's K, D, P and the layout's frame ids
+    assert rec.topics[layout.LEFT_INFO].count == n and rec.topics[layout.RIGHT_INFO].count == n
+    info_l, info_r = rec.camera_infos
+    assert (info_l.frame_id, info_r.frame_id) == (layout.LEFT_FRAME, layout.RIGHT_FRAME)
+    assert (info_l.width, info_l.height) == (spec.width, spec.height)
+    assert np.array_equal(info_l.k, [[FX, 0, CX], [0, FX, CY], [0, 0, 1]])
+    assert np.array_equal(info_l.d, [0.01, -0.02, 0.0, 0.0, 0.001])
+    assert info_r.p[0, 3] == -FX * BASELINE_M
+    assert rec.stereo.baseline_mm == pytest.approx(BASELINE_M * 1000)
+    tf = rec.message(layout.TF_STATIC, 0).transforms[0]
+    assert (tf.frame_id, tf.child_frame_id) == (layout.LEFT_FRAME, layout.RIGHT_FRAME)
+    assert tf.translation == pytest.approx((BASELINE_M, 0.0, 0.0))
+    # force: every sample, stamps and values exact
+    force = rec.force
+    assert np.array_equal(force.times_ns, spec.force_ns)
+    assert np.array_equal(force.wrench, spec.wrench)
+    assert force.frame_id == "ati_sensor"
+    # pose, as PoseStamped whatever the bag had
+    if spec.pose_type:
+        pose = rec.ecm_pose
+        assert np.array_equal(pose.times_ns, spec.pose_ns)
+        assert np.allclose(pose.position_m, spec.pose[:, :3], atol=1e-15)
+        assert np.allclose(pose.quaternion_xyzw, spec.pose[:, 3:], atol=1e-15)
+        assert rec.topics[layout.ECM_POSE].msgtype == "geometry_msgs/msg/PoseStamped"
+    else:
+        assert not rec.has(layout.ECM_POSE)
+    # the file is in time order
+    assert rec.metadata.converter.startswith("vfdata convert (ROS")
+    return rec
+
+
+@pytest.mark.parametrize("ros2, storage, pose_type", [
+    (False, None, "PoseStamped"),
+    (False, None, "TransformStamped"),
+    (True, StoragePlugin.SQLITE3, "TransformStamped"),
+    (True, StoragePlugin.MCAP, "PoseStamped"),
+])
+def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type):
+    spec = BagSpec(ros2=ros2, storage=storage or StoragePlugin.SQLITE3, pose_type=pose_type)
+    bag = tmp_path / ("rec" if ros2 else "rec.bag")
+    write_bag(bag, spec)
+    before = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
+    out = convert_bag(bag, tmp_path / "rec.mcap", options=PNG)
+    rec = check_recording(out, spec)
+    assert rec.metadata.extra["bag_left_topic"] == LEFT
+    assert rec.metadata.extra["bag_pose_topic"] == "/ECM/measured_cp"
+    assert rec.metadata.extra["pair_max_offset_ns"] == "2000000"
+    after = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*") if p != out)
+    assert after == before  # the bag is not modified
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_compressed_jpeg_bag_is_copied_not_reencoded(tmp_path, ros2):
+    spec = write_bag(tmp_path / ("c" if ros2 else "c.bag"), BagSpec(
+        ros2=ros2, encoding="compressed", left=LEFT + "/compressed", right=RIGHT + "/compressed"))
+    out = convert_bag(tmp_path / ("c" if ros2 else "c.bag"), tmp_path / "c.mcap",
+                      options=ConvertOptions(progress=False))
+    jpegs = [[cv2.imencode(".jpg", image)[1] for image in pair] for pair in spec.images]
+    spec.images = [[cv2.imdecode(data, cv2.IMREAD_COLOR) for data in pair] for pair in jpegs]
+    rec = check_recording(out, spec)
+    for i in range(spec.frames):
+        left, right = rec.frame_images(i)
+        assert left.format == right.format == "jpeg"
+        assert (left.data, right.data) == (jpegs[i][0].tobytes(), jpegs[i][1].tobytes())
+
+
+def test_compressed_png_to_png_is_exact(tmp_path):
+    spec = write_bag(tmp_path / "p.bag", BagSpec(encoding="compressed_png", left=LEFT + "/compressed",
+                                                 right=RIGHT + "/compressed"))
+    check_recording(convert_bag(tmp_path / "p.bag", tmp_path / "p.mcap", options=PNG), spec)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "mono8"])
+def test_other_raw_encodings(tmp_path, encoding):
+    spec = write_bag(tmp_path / "e.bag", BagSpec(encoding=encoding, frames=3))
+    check_recording(convert_bag(tmp_path / "e.bag", tmp_path / "e.mcap", options=PNG), spec)
+
+
+def test_raw_image_decoding():
+    rng = np.random.default_rng(3)
+    bgr = rng.integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    # row padding (step > width * channels) is dropped
+    padded = np.zeros((6, 8 * 3 + 5), np.uint8)
+    padded[:, :24] = bgr.reshape(6, 24)
+    assert np.array_equal(bags.raw_image_to_bgr(6, 8, "bgr8", 0, 29, padded.ravel()), bgr)
+    assert np.array_equal(bags.raw_image_to_bgr(6, 8, "rgba8", 0, 32, np.dstack([bgr[..., ::-1], bgr[..., :1]])),
+                          bgr)
+    # 16-bit: full range scaled to 8 bits, either byte order
+    mono16 = np.array([[0, 257, 65535, 32896]], np.uint16)
+    expect = np.repeat(np.array([[0, 1, 255, 128]], np.uint8)[..., None], 3, axis=2)
+    assert np.array_equal(bags.raw_image_to_bgr(1, 4, "mono16", 0, 8, mono16.astype("<u2").tobytes()), expect)
+    assert np.array_equal(bags.raw_image_to_bgr(1, 4, "16UC1", 1, 8, mono16.astype(">u2").tobytes()), expect)
+    # Bayer: a flat colour mosaiced in each ROS pattern demosaics back to that colour
+    b, g, r = 40, 120, 220
+    for pattern_name, layout_2x2 in (("rggb", [[r, g], [g, b]]), ("bggr", [[b, g], [g, r]]),
+                                     ("gbrg", [[g, b], [r, g]]), ("grbg", [[g, r], [b, g]])):
+        mosaic = np.tile(np.array(layout_2x2, np.uint8), (4, 4))
+        out = bags.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}8", 0, 8, mosaic)
+        assert out[2:6, 2:6].reshape(-1, 3).tolist() == [[b, g, r]] * 16, pattern_name
+        out16 = bags.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}16", 0, 16, (mosaic.astype(np.uint16) * 257))
+        assert out16[2:6, 2:6].reshape(-1, 3).tolist() == [[b, g, r]] * 16, pattern_name
+    with pytest.raises(bags.UnsupportedImage, match="32FC1"):
+        bags.raw_image_to_bgr(1, 1, "32FC1", 0, 4, b"\0\0\0\0")
+    with pytest.raises(bags.UnsupportedImage, match="step"):
+        bags.raw_image_to_bgr(2, 4, "bgr8", 0, 12, b"\0" * 20)
+    with pytest.raises(bags.UnsupportedImage, match="compressedDepth"):
+        bags.compressed_format("16UC1; compressedDepth png")
+
+
+def test_pair_stamps_mutual_nearest_within_tolerance():
+    left = np.array([100, 200, 300, 400, 400, 500])
+    right = np.array([505, 102, 199, 330, 401, 260])  # unsorted; 260 sits between two left frames
+    li, ri = bags.pair_stamps(left, right, tolerance_ns=20)
+    assert [(int(left[i]), int(right[j])) for i, j in zip(li, ri, strict=True)] == [
+        (100, 102), (200, 199), (400, 401), (500, 505)]
+    assert bags.default_pair_tolerance_ns(np.array([0, 30, 60, 100, 120])) == 15
+    li, ri = bags.pair_stamps(left, np.array([10_000]), 20)
+    assert len(li) == len(ri) == 0
+
+
+def test_unpaired_frames_are_reported_and_left_out(tmp_path, caplog):
+    extra = (T0_NS + FRAME_NS // 2, T0_NS + 3 * FRAME_NS + FRAME_NS // 2)  # right frames half a period off
+    spec = write_bag(tmp_path / "u.bag", BagSpec(extra_right_ns=extra))
+    with caplog.at_level(logging.WARNING):
+        out = convert_bag(tmp_path / "u.bag", tmp_path / "u.mcap", options=PNG)
+    assert "0 left and 2 right frames have no partner within 16.7 ms" in caplog.text
+    rec = check_recording(out, spec)
+    assert rec.metadata.extra["unpaired_right_frames"] == "2"
+
+
+def test_zero_header_stamps_fall_back_to_receive_time(tmp_path, caplog):
+    spec = write_bag(tmp_path / "z.bag", BagSpec(zero_stamps=True, right_offset_ns=0))
+    with caplog.at_level(logging.WARNING):
+        out = convert_bag(tmp_path / "z.bag", tmp_path / "z.mcap", options=PNG)
+    assert "8 of 8 messages have header.stamp 0; using the bag receive time" in caplog.text
+    rec = Recording.open(out)
+    assert np.array_equal(rec.frame_times_ns, spec.frame_ns + 5_000_000)  # receive = stamp + 5 ms in write_bag
+
+
+def test_remapped_topics_and_calibration_file(tmp_path):
+    spec = write_bag(tmp_path / "r.bag", BagSpec(left="/cam/l/image", right="/cam/r/image", camera_info=False,
+                                                 force_topics=("/my_ft",), pose_type="TransformStamped"))
+    calib = calibration(spec.width, spec.height)
+    calib.save(tmp_path / "calibration.yaml")
+    topics = BagTopics(left="/cam/l/image", right="/cam/r/image", force="/my_ft")
+    out = convert_bag(tmp_path / "r.bag", tmp_path / "r.mcap", options=PNG, topics=topics,
+                      calibration=tmp_path / "calibration.yaml")
+    rec = Recording.open(out)
+    assert np.array_equal(rec.force.wrench, spec.wrench)
+    assert rec.stereo.baseline_mm == pytest.approx(4.5)
+    assert rec.camera.fx == pytest.approx(200.0)
+    assert rec.metadata.extra["bag_force_topic"] == "/my_ft"
+    # without the calibration, the missing camera_info is named
+    with pytest.raises(InputError, match=r"no left camera_info topic .* --calibration"):
+        convert_bag(tmp_path / "r.bag", tmp_path / "r2.mcap", options=PNG, topics=topics)
+
+
+def test_force_auto_detection(tmp_path):
+    # not a default name, but the only WrenchStamped beside a dVRK arm estimate
+    spec = write_bag(tmp_path / "a.bag", BagSpec(force_topics=("/sensor/wrench", "/PSM1/body/measured_cf"),
+                                                 frames=3))
+    out = convert_bag(tmp_path / "a.bag", tmp_path / "a.mcap", options=PNG)
+    assert Recording.open(out).metadata.extra["bag_force_topic"] == "/sensor/wrench"
+    assert np.array_equal(Recording.open(out).force.times_ns, spec.force_ns)
+    write_bag(tmp_path / "b.bag", BagSpec(force_topics=("/ft1", "/ft2"), frames=3))
+    with pytest.raises(InputError, match=r"several WrenchStamped topics .*/ft1, /ft2.* --force-topic"):
+        convert_bag(tmp_path / "b.bag", tmp_path / "b.mcap", options=PNG)
+
+
+def test_image_topic_auto_detection(tmp_path):
+    write_bag(tmp_path / "i.bag", BagSpec(left="/stereo/left/image_mono", right="/stereo/right/image_mono",
+                                          camera_info=False, frames=3))
+    with bags.open_bag(tmp_path / "i.bag") as reader:
+        choice = bags.choose_topics(tmp_path / "i.bag", bags.topic_types(reader), BagTopics(), use_camera_info=False)
+    assert (choice.left, choice.right) == ("/stereo/left/image_mono", "/stereo/right/image_mono")
+    assert choice.how["left"] == "auto-detected"
+
+
+def error_of(tmp_path, spec: BagSpec, **kwargs) -> str:
+    tmp_path.mkdir()
+    bag = tmp_path / "bad.bag"
+    write_bag(bag, spec)
+    out = tmp_path / "bad.mcap"
+    with pytest.raises(InputError) as info:
+        convert_bag(bag, out, options=PNG, **kwargs)
+    assert not out.exists() and not list(tmp_path.glob(".bad.mcap*"))
+    assert "\n" not in str(info.value) and str(info.value).startswith(str(bag))
+    return info.value.problem
+
+
+def test_errors(tmp_path):
+    assert "no image topic found" in error_of(tmp_path / "0", BagSpec(with_images=False))
+    assert "no left/right image topic pair found among /a, /b" in error_of(tmp_path / "1", BagSpec(left="/a",
+                                                                                                   right="/b"))
+    assert "left and right images never pair within 16.7 ms" in error_of(
+        tmp_path / "2", BagSpec(right_offset_ns=10**10))
+    assert "force starts" in error_of(tmp_path / "3", BagSpec(force_shift_ns=120_000_000))
+    assert "lie outside the video span" in error_of(tmp_path / "4", BagSpec(force_shift_ns=-10**10))
+    assert "unsupported image encoding '32FC1'" in error_of(tmp_path / "5", BagSpec(encoding="32FC1", frames=2))
+    assert "no force topic" in error_of(tmp_path / "6", BagSpec(force_topics=()))
+    assert "--left-topic /nope: no such topic" in error_of(tmp_path / "7", BagSpec(), topics=BagTopics(left="/nope"))
+
+
+def test_output_exists_and_not_a_bag(tmp_path):
+    write_bag(tmp_path / "o.bag", BagSpec(frames=2))
+    (tmp_path / "o.mcap").write_bytes(b"keep")
+    with pytest.raises(OutputExistsError):
+        convert_bag(tmp_path / "o.bag", tmp_path / "o.mcap", options=PNG)
+    assert (tmp_path / "o.mcap").read_bytes() == b"keep"
+    (tmp_path / "x.bag").write_bytes(b"not a bag")
+    with pytest.raises(InputError, match="cannot read the bag"):
+        convert_bag(tmp_path / "x.bag", tmp_path / "x.mcap", options=PNG)
+    with pytest.raises(InputError, match="not a ROS bag"):
+        convert_bag(tmp_path, tmp_path / "y.mcap", options=PNG)
+
+
+def test_inspect_bag(tmp_path, capsys):
+    write_bag(tmp_path / "s.bag", BagSpec(force_topics=("/netft_data", "/PSM1/body/measured_cf")))
+    text = inspect_bag_text(tmp_path / "s.bag")
+    lines = {line.split()[0]: line for line in text.splitlines() if line.startswith("/")}
+    assert "sensor_msgs/msg/Image" in lines[LEFT] and " 8 " in lines[LEFT]
+    assert "left images (dVRK default)" in lines[LEFT]
+    assert "30.00" in lines[LEFT]  # Hz
+    assert "force (default)" in lines["/netft_data"] and "1000.00" in lines["/netft_data"]
+    assert "used as" not in lines["/PSM1/body/measured_cf"] and lines["/PSM1/body/measured_cf"].split()[-1] != "force"
+    assert "ECM pose (dVRK default)" in lines["/ECM/measured_cp"]
+    assert "stereo pairs: 8 within 16.7 ms" in text and "ready to convert" in text
+    # a bag that cannot be converted is still listed, with the reason
+    write_bag(tmp_path / "n.bag", BagSpec(with_images=False, frames=2))
+    assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "/netft_data " in out and "cannot convert: no image topic found" in out
