@@ -5,14 +5,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vfdata.conversion.bags import BagTopics, convert_bag, is_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("convert", help="convert a raw recording folder to a recording MCAP",
-                       description="Convert a raw recording folder (docs/raw_layout.md) to an MCAP file "
-                                   "of the VisionForce layout (docs/format.md).")
-    p.add_argument("src", type=Path, help="raw recording folder")
+    p = sub.add_parser("convert", help="convert a raw recording folder or a ROS bag to a recording MCAP",
+                       description="Convert a raw recording folder (docs/raw_layout.md) or a ROS 1/ROS 2 bag "
+                                   "(docs/bags.md) to an MCAP file of the VisionForce layout (docs/format.md).")
+    p.add_argument("src", type=Path, help="raw recording folder, ROS 1 .bag, or ROS 2 bag folder")
     p.add_argument("out", type=Path, help="output .mcap file")
     p.add_argument("--format", dest="image_format", choices=["jpeg", "png"], default="jpeg",
                    help="image compression in the MCAP (default jpeg)")
@@ -22,6 +23,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=2, help="image encoding threads (default 2)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    bag = p.add_argument_group("ROS bags (defaults: dVRK topic names, else auto-detected by type)")
+    bag.add_argument("--left-topic", help="left image topic (sensor_msgs/Image or CompressedImage)")
+    bag.add_argument("--right-topic", help="right image topic")
+    bag.add_argument("--left-info-topic", help="left CameraInfo topic")
+    bag.add_argument("--right-info-topic", help="right CameraInfo topic")
+    bag.add_argument("--force-topic", help="WrenchStamped topic")
+    bag.add_argument("--pose-topic", help="ECM pose topic (PoseStamped or TransformStamped); 'none' to skip")
+    bag.add_argument("--calibration", type=Path, help="calibration.yaml to use instead of the bag's CameraInfo")
+    bag.add_argument("--pair-tolerance-ms", type=float,
+                     help="largest left/right stamp difference of a pair (default half a frame period)")
     p.set_defaults(func=run)
 
 
@@ -30,6 +41,13 @@ def run(args: argparse.Namespace) -> int:
         image_format=args.image_format, jpeg_quality=args.quality,
         force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), workers=args.workers, progress=not args.quiet,
     )
-    out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options)
+    if is_bag(args.src):
+        topics = BagTopics(left=args.left_topic, right=args.right_topic, left_info=args.left_info_topic,
+                           right_info=args.right_info_topic, force=args.force_topic, pose=args.pose_topic)
+        tolerance = None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6)
+        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, topics=topics,
+                          calibration=args.calibration, pair_tolerance_ns=tolerance)
+    else:
+        out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options)
     print(f"wrote {out}")
     return 0
