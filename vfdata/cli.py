@@ -15,6 +15,7 @@ COMMANDS = [
     "info",
     "check",
     "inspect-bag",
+    "synth",
 ]
 
 

@@ -1,0 +1,153 @@
+"""Presets: which recordings a dataset has (ids, orientation, split, length) and the ranges from which
+each recording's tissue, material, camera and motion are drawn.
+
+`glove` follows the paper's rubber-glove finger phantom study (about 16,300 frames, 7:2:1
+train/val/test, test at 90 and 180 degrees); `colon` its ex vivo porcine colon study (about 5,300
+frames, 7:1.5:1.5); `mini` is a few hundred frames per recording for tests and the Quickstart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vfdata.errors import VisionForceError
+from vfdata.sim.render import Palette
+
+FPS = 30.0
+
+
+@dataclass(frozen=True)
+class TissueKind:
+    """Ranges (lo, hi) of a study's tissue and how it is filmed and handled."""
+
+    study: str
+    description: str
+    length_mm: tuple[float, float]
+    diameter_mm: tuple[float, float]
+    tip_ratio: tuple[float, float]          # free-end radius / clamped-end radius
+    n_rings: int
+    n_around: int
+    modulus_mpa: tuple[float, float]
+    wall_mm: tuple[float, float]
+    density_kg_m3: float
+    stiffening: tuple[float, float]
+    compression_ratio: float
+    kelvin_voigt_s: tuple[float, float]
+    maxwell_ratio: tuple[float, float]
+    maxwell_tau_s: tuple[float, float]
+    kind_factors: tuple[float, ...]
+    grasp_fraction: tuple[float, float]     # grasp point position along the tube
+    # Reach of the grasp point as fractions of the tube length (object frame X up, Y, Z along).
+    reach_lo: tuple[float, float, float]
+    reach_hi: tuple[float, float, float]
+    camera_distance_mm: tuple[float, float]
+    palette: Palette
+    dense_s: int
+    dense_theta: int
+
+
+GLOVE = TissueKind(
+    study="glove",
+    description="finger of a latex glove filled with soft silicone, clamped at its base",
+    length_mm=(56.0, 64.0),
+    diameter_mm=(16.0, 20.0),
+    tip_ratio=(0.8, 0.9),
+    n_rings=16,
+    n_around=12,
+    modulus_mpa=(0.16, 0.22),
+    wall_mm=(1.4, 1.6),
+    density_kg_m3=1050.0,
+    stiffening=(5.0, 8.0),
+    compression_ratio=0.3,
+    kelvin_voigt_s=(0.03, 0.06),
+    maxwell_ratio=(0.25, 0.4),
+    maxwell_tau_s=(0.8, 2.0),
+    kind_factors=(1.0, 1.0, 0.5, 3.0, 0.5, 2.0),
+    grasp_fraction=(0.74, 0.82),
+    reach_lo=(-0.12, -0.42, -0.06),
+    reach_hi=(0.38, 0.42, 0.22),
+    camera_distance_mm=(78.0, 92.0),
+    palette=Palette(light=(0.80, 0.58, 0.46), dark=(0.66, 0.40, 0.32), vessel=(0.42, 0.07, 0.09),
+                    blotch=(0.75, 0.36, 0.34), vessel_count=5, gloss=0.55, shininess=70.0, grain=0.22),
+    dense_s=44,
+    dense_theta=36,
+)
+
+COLON = TissueKind(
+    study="colon",
+    description="ex vivo porcine colon segment, closed at the free end, clamped at its wide end",
+    length_mm=(100.0, 140.0),
+    diameter_mm=(25.0, 35.0),
+    tip_ratio=(0.65, 0.8),
+    n_rings=22,
+    n_around=16,
+    modulus_mpa=(0.045, 0.07),
+    wall_mm=(2.0, 3.0),
+    density_kg_m3=1040.0,
+    stiffening=(10.0, 16.0),
+    compression_ratio=0.15,
+    kelvin_voigt_s=(0.06, 0.12),
+    maxwell_ratio=(0.4, 0.7),
+    maxwell_tau_s=(1.0, 3.0),
+    kind_factors=(1.0, 1.0, 0.4, 2.0, 0.35, 1.2),
+    grasp_fraction=(0.72, 0.82),
+    reach_lo=(-0.08, -0.32, -0.04),
+    reach_hi=(0.3, 0.32, 0.16),
+    camera_distance_mm=(120.0, 140.0),
+    palette=Palette(light=(0.78, 0.40, 0.38), dark=(0.52, 0.15, 0.16), vessel=(0.33, 0.03, 0.06),
+                    blotch=(0.85, 0.66, 0.52), vessel_count=14, gloss=0.8, shininess=80.0, grain=0.16),
+    dense_s=56,
+    dense_theta=44,
+)
+
+BED_PALETTE = Palette(light=(0.86, 0.62, 0.55), dark=(0.55, 0.12, 0.13), vessel=(0.38, 0.03, 0.05),
+                      blotch=(0.92, 0.80, 0.55), vessel_count=40, gloss=0.55, shininess=55.0, grain=0.14)
+
+
+@dataclass(frozen=True)
+class RecordingPlan:
+    id: str
+    index: int
+    orientation_deg: float
+    split: str
+    frames: int
+    tissue: TissueKind
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    tissue: TissueKind
+    recordings: tuple[RecordingPlan, ...]
+    width: int = 640
+    height: int = 512
+
+    @property
+    def total_frames(self) -> int:
+        return sum(r.frames for r in self.recordings)
+
+
+def _plan(name: str, tissue: TissueKind, groups: list[tuple[str, float, list[int]]]) -> Preset:
+    recs = []
+    for split, orientation, lengths in groups:
+        for frames in lengths:
+            k = len(recs)
+            recs.append(RecordingPlan(f"{name}_{k:03d}", k, orientation, split, frames, tissue))
+    return Preset(name, tissue, tuple(recs))
+
+
+PRESETS: dict[str, Preset] = {
+    "mini": _plan("mini", GLOVE, [("train", 0.0, [240]), ("val", 0.0, [150]), ("test", 90.0, [150])]),
+    # 11,400 + 3,260 + 1,632 = 16,292 frames (7 : 2 : 1).
+    "glove": _plan("glove", GLOVE, [("train", 0.0, [950] * 12), ("val", 0.0, [815] * 4),
+                                     ("test", 90.0, [408] * 2), ("test", 180.0, [408] * 2)]),
+    # 3,710 + 795 + 796 = 5,301 frames (7 : 1.5 : 1.5).
+    "colon": _plan("colon", COLON, [("train", 0.0, [742] * 5), ("val", 0.0, [795]),
+                                     ("test", 90.0, [398]), ("test", 180.0, [398])]),
+}
+
+
+def get_preset(name: str) -> Preset:
+    if name not in PRESETS:
+        raise VisionForceError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
+    return PRESETS[name]

@@ -1,0 +1,460 @@
+"""Stereo endoscope rendering of quad meshes: painter's-order rasterisation of quad ids with OpenCV,
+then vectorised per-pixel perspective-correct interpolation, texturing and shading in numpy.
+
+Scene layers, composited per pixel by depth: a static layer (tissue bed and fixture, rendered once
+per recording and view), the deforming tube, and the instrument. Lighting: a point light at the scope
+tip (between the lenses) with inverse-square falloff, wrapped Lambert diffuse (soft, like tissue with
+subsurface scattering), wet Blinn-Phong highlights broken up by a bump map and a gloss map, lens
+vignetting, a slight optical blur and sensor noise.
+
+Camera frames follow vfdata.calibration: x right, y down, z forward, mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vfdata.calibration import PinholeCamera
+
+_NEAR_MM = 2.0
+_SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
+
+
+# --- geometry helpers -----------------------------------------------------------------------------
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None,
+            roll_rad: float = 0.0) -> np.ndarray:
+    """Rotation (3, 3) whose columns are the camera x (right), y (down), z (forward) axes in the world
+    frame, for a camera at `eye` looking at `target` with world `up` up in the image."""
+    up = np.array([0.0, 0.0, 1.0]) if up is None else up
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    if roll_rad:
+        c, s = np.cos(roll_rad), np.sin(roll_rad)
+        x, y = c * x + s * y, -s * x + c * y
+    return np.stack([x, y, z], axis=1)
+
+
+def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rodrigues rotation matrix about a unit axis."""
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+
+
+@dataclass
+class Mesh:
+    """Quads over vertices, with per-vertex unit normals and extra attributes to interpolate."""
+
+    verts: np.ndarray    # (N, 3) mm
+    quads: np.ndarray    # (Q, 4) vertex indices, any winding
+    normals: np.ndarray  # (N, 3)
+    attrs: np.ndarray    # (N, A) e.g. texture coordinates, tangents, material ids
+
+    def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> Mesh:
+        return Mesh(self.verts @ rotation.T + translation, self.quads, self.normals @ rotation.T, self.attrs)
+
+    @staticmethod
+    def concat(meshes: list[Mesh]) -> Mesh:
+        offsets = np.cumsum([0] + [len(m.verts) for m in meshes[:-1]])
+        return Mesh(
+            np.concatenate([m.verts for m in meshes]),
+            np.concatenate([m.quads + o for m, o in zip(meshes, offsets, strict=True)]),
+            np.concatenate([m.normals for m in meshes]),
+            np.concatenate([m.attrs for m in meshes]),
+        )
+
+
+def grid_quads(rows: int, cols: int, wrap_cols: bool) -> np.ndarray:
+    """Quads (Q, 4) of a rows x cols vertex grid (row-major), optionally closed across columns."""
+    r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols if wrap_cols else cols - 1), indexing="ij")
+    c1 = (c + 1) % cols
+    q = np.stack([r * cols + c, (r + 1) * cols + c, (r + 1) * cols + c1, r * cols + c1], axis=-1)
+    return q.reshape(-1, 4)
+
+
+def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, material: float,
+                  cap0: bool = False, cap1: bool = True) -> Mesh:
+    """A cylinder from p0 to p1 with optional flat caps; attrs = [material id]."""
+    axis = p1 - p0
+    length = np.linalg.norm(axis)
+    a = axis / length
+    ref = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(a, ref)
+    u /= np.linalg.norm(u)
+    v = np.cross(a, u)
+    ang = 2 * np.pi * np.arange(n_around) / n_around
+    ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v  # (n, 3) radial directions
+    verts = np.concatenate([p0 + radius * ring, p1 + radius * ring])
+    normals = np.concatenate([ring, ring])
+    quads = [grid_quads(2, n_around, wrap_cols=True)]
+    for cap, centre, sign in ((cap0, p0, -1.0), (cap1, p1, 1.0)):
+        if not cap:
+            continue
+        base = len(verts)
+        verts = np.concatenate([verts, centre + radius * ring, centre[None]])
+        normals = np.concatenate([normals, np.tile(sign * a, (n_around + 1, 1))])
+        k = np.arange(n_around)
+        quads.append(np.stack([base + k, base + (k + 1) % n_around, np.full(n_around, base + n_around),
+                               np.full(n_around, base + n_around)], axis=1))
+    return Mesh(verts, np.concatenate(quads), normals, np.full((len(verts), 1), material))
+
+
+def box_mesh(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, material: float,
+             taper: float = 1.0) -> Mesh:
+    """A box (flat-shaded faces) with local axes as columns of `axes` and half sizes `half`; `taper`
+    scales the +axis0 end's cross-section (a jaw narrowing toward its tip)."""
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    local = corners * half
+    local[corners[:, 0] > 0, 1:] *= taper
+    world = centre + local @ axes.T
+    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    verts, normals, quads = [], [], []
+    for f in faces:
+        p = world[list(f)]
+        n = np.cross(p[1] - p[0], p[3] - p[0])
+        n /= np.linalg.norm(n)
+        if np.dot(n, p.mean(0) - centre) < 0:
+            n = -n
+        quads.append(np.arange(4) + 4 * len(quads))
+        verts.append(p)
+        normals.append(np.tile(n, (4, 1)))
+    return Mesh(np.concatenate(verts), np.array(quads), np.concatenate(normals),
+                np.full((24, 1), material))
+
+
+# --- rasterisation ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Fragments:
+    """Per-pixel samples of one layer, channel-first float32: flat pixel indices (P,), depth (P,) mm,
+    and, once `interpolate` ran, the mesh's normals then attributes (3 + A, P), perspective-correct."""
+
+    flat: np.ndarray
+    depth: np.ndarray
+    px: np.ndarray
+    py: np.ndarray
+    tri: np.ndarray          # (P,) index of the covering triangle
+    coef: np.ndarray         # (C, 3, T) screen-plane coefficients of 1/z and channel/z per triangle
+    values: np.ndarray | None = None
+
+    def subset(self, keep: np.ndarray) -> Fragments:
+        return Fragments(self.flat[keep], self.depth[keep], self.px[keep], self.py[keep], self.tri[keep],
+                         self.coef, None if self.values is None else self.values[:, keep])
+
+    def interpolate(self) -> Fragments:
+        g = np.take(self.coef[1:], self.tri, axis=2)  # (C - 1, 3, P)
+        self.values = (g[:, 0] * self.px + g[:, 1] * self.py + g[:, 2]) * self.depth
+        return self
+
+    @property
+    def normal(self) -> np.ndarray:
+        """(3, P) unit normals."""
+        n = self.values[:3]
+        return n / np.maximum(np.sqrt((n * n).sum(0)), 1e-12)
+
+    @property
+    def attrs(self) -> np.ndarray:
+        return self.values[3:]
+
+    def position(self, camera: PinholeCamera) -> np.ndarray:
+        """(3, P) camera-frame positions (mm)."""
+        z = self.depth
+        return np.stack([(self.px - np.float32(camera.cx)) * z / np.float32(camera.fx),
+                         (self.py - np.float32(camera.cy)) * z / np.float32(camera.fy), z])
+
+
+def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Per triangle, (A, B, C) with A x + B y + C = f through its three vertices. x, y: (T, 3);
+    f: (T, 3, C). Returns (C, 3, T); degenerate triangles get the constant f0."""
+    dx1, dx2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+    dy1, dy2 = y[:, 1] - y[:, 0], y[:, 2] - y[:, 0]
+    det = dx1 * dy2 - dx2 * dy1
+    ok = np.abs(det) > 1e-9
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+    df1, df2 = f[:, 1] - f[:, 0], f[:, 2] - f[:, 0]
+    a = (df1 * dy2[:, None] - df2 * dy1[:, None]) * inv
+    b = (dx1[:, None] * df2 - dx2[:, None] * df1) * inv
+    c = f[:, 0] - a * x[:, :1] - b * y[:, :1]
+    return np.stack([a, b, c], axis=0).transpose(2, 0, 1).astype(np.float32)
+
+
+def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) -> Fragments:
+    """Rasterise the mesh (vertices in this camera's frame) into fragments of the nearest surface
+    (painter's order by quad depth). Each quad is split along its 0-2 diagonal; depths are exact for
+    the planar triangles. Call `.interpolate()` on (a subset of) the result for normals and attributes."""
+    v = mesh.verts
+    z = v[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([camera.fx * v[:, 0] / z + camera.cx, camera.fy * v[:, 1] / z + camera.cy], axis=1)
+    q = mesh.quads
+    qz = z[q]
+    ok = (qz > _NEAR_MM).all(axis=1)
+    quv = uv[q]
+    with np.errstate(invalid="ignore"):
+        ok &= (quv[..., 0].max(1) >= -1) & (quv[..., 0].min(1) <= camera.width)
+        ok &= (quv[..., 1].max(1) >= -1) & (quv[..., 1].min(1) <= camera.height)
+    if cull_backfaces:
+        centre = v[q].mean(axis=1)
+        normal = mesh.normals[q].sum(axis=1)
+        ok &= np.einsum("qx,qx->q", centre, normal) < 0
+    ids = np.nonzero(ok)[0]
+    ids = ids[np.argsort(-qz[ids].mean(axis=1), kind="stable")]  # far to near
+    # Grow each quad by half a pixel about its centre so that neighbours overlap instead of leaving
+    # cracks; the overlap is resolved by the drawing order and the planes extrapolate exactly.
+    quad_uv = quv[ids]
+    centre_uv = quad_uv.mean(axis=1, keepdims=True)
+    rel = quad_uv - centre_uv
+    grow = 0.6 / np.maximum(np.linalg.norm(rel, axis=2, keepdims=True), 1e-6)
+    pts = np.round((quad_uv + rel * grow) * (1 << _SHIFT)).astype(np.int32)
+    qid = np.full((camera.height, camera.width), -1, dtype=np.int32)
+    fill = cv2.fillConvexPoly
+    for quad_index, poly in zip(ids.tolist(), pts, strict=True):
+        fill(qid, poly, quad_index, cv2.LINE_8, _SHIFT)
+
+    flat = np.flatnonzero(qid >= 0)
+    quad = qid.ravel()[flat]
+    px = (flat % camera.width).astype(np.float32)
+    py = (flat // camera.width).astype(np.float32)
+    # Which triangle: the side of the 0-2 diagonal that vertex 3 lies on.
+    a, c, d = quv[:, 0], quv[:, 2], quv[:, 3]
+    ex, ey = c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
+    side_d = np.sign(ex * (d[:, 1] - a[:, 1]) - ey * (d[:, 0] - a[:, 0]))
+    e = np.stack([-ey * side_d, ex * side_d, (ey * a[:, 0] - ex * a[:, 1]) * side_d]).astype(np.float32)
+    eq = np.take(e, quad, axis=1)
+    second = (eq[0] * px + eq[1] * py + eq[2]) > 0
+    tri = 2 * quad + second
+    # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every quad.
+    tri_verts = np.stack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]], axis=1).reshape(-1, 3)  # (2Q, 3)
+    inv_z = 1.0 / np.where(z > _NEAR_MM, z, np.inf)
+    chans = np.concatenate([np.ones((len(z), 1)), mesh.normals, mesh.attrs], axis=1) * inv_z[:, None]
+    with np.errstate(invalid="ignore"):
+        coef = _plane_coefficients(uv[tri_verts, 0], uv[tri_verts, 1], chans[tri_verts])
+    coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
+    g = np.take(coef[0], tri, axis=1)
+    depth = 1.0 / np.maximum(g[0] * px + g[1] * py + g[2], 1e-9)
+    return Fragments(flat, depth.astype(np.float32), px, py, tri, coef)
+
+
+# --- textures ---------------------------------------------------------------------------------------
+
+
+def tileable_noise(rng: np.random.Generator, height: int, width: int, cells: tuple[int, int]) -> np.ndarray:
+    """Smooth value noise in [-1, 1]-ish, periodic across columns: random values on a cells grid,
+    bicubically upsampled."""
+    gh, gw = cells
+    low = rng.standard_normal((gh + 4, gw)).astype(np.float32)
+    low = np.pad(low, ((0, 0), (2, 2)), mode="wrap")
+    cell_w = width / gw
+    cell_h = height / gh
+    big = cv2.resize(low, (int(round((gw + 4) * cell_w)), int(round((gh + 4) * cell_h))),
+                     interpolation=cv2.INTER_CUBIC)
+    x0 = int(round(2 * cell_w))
+    y0 = int(round(2 * cell_h))
+    return big[y0:y0 + height, x0:x0 + width] / 1.0
+
+
+def fractal_noise(rng: np.random.Generator, height: int, width: int, base_cells: int, octaves: int,
+                  aspect: float = 1.0) -> np.ndarray:
+    out = np.zeros((height, width), np.float32)
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        cells = (max(2, int(base_cells * 2**o * aspect)), max(2, int(base_cells * 2**o)))
+        out += amp * tileable_noise(rng, height, width, cells)
+        total += amp
+        amp *= 0.55
+    return out / total
+
+
+def draw_vessels(rng: np.random.Generator, height: int, width: int, count: int, thickness: tuple[int, int],
+                 length_px: tuple[int, int]) -> np.ndarray:
+    """A mask (float32, 0..1) of branching, meandering vessels, periodic across columns."""
+    canvas = np.zeros((height, 3 * width), np.uint8)
+
+    def walk(x: float, y: float, heading: float, length: int, thick: int, depth: int) -> None:
+        pts = [(x, y)]
+        step = 4.0
+        for _ in range(max(2, int(length / step))):
+            heading += rng.normal(0, 0.25)
+            x += step * np.cos(heading)
+            y += step * np.sin(heading)
+            pts.append((x, y))
+            if depth < 2 and rng.random() < 0.04:
+                walk(x, y, heading + rng.choice([-1, 1]) * rng.uniform(0.5, 1.1), int(length * 0.5),
+                     max(1, thick - 1), depth + 1)
+        poly = np.round(np.array(pts) * 16).astype(np.int32)
+        cv2.polylines(canvas, [poly], False, 255, thick, cv2.LINE_AA, 4)
+
+    for _ in range(count):
+        walk(rng.uniform(width, 2 * width), rng.uniform(0, height), rng.uniform(0, 2 * np.pi),
+             int(rng.integers(*length_px)), int(rng.integers(*thickness)), 0)
+    folded = np.maximum(np.maximum(canvas[:, :width], canvas[:, width:2 * width]), canvas[:, 2 * width:])
+    return cv2.GaussianBlur(folded.astype(np.float32) / 255.0, (0, 0), 0.8)
+
+
+@dataclass(frozen=True)
+class Palette:
+    light: tuple[float, float, float]   # linear RGB albedo
+    dark: tuple[float, float, float]
+    vessel: tuple[float, float, float]
+    blotch: tuple[float, float, float]
+    vessel_count: int
+    gloss: float                        # mean specular strength
+    shininess: float
+    grain: float                        # amplitude of fine texture (what stereo matching locks on)
+
+
+@dataclass
+class Texture:
+    """Material textures sampled by (u, v) pixel coordinates; u wraps around."""
+
+    albedo: np.ndarray  # (H, W, 3) float32 linear RGB
+    extra: np.ndarray   # (H, W, 3) float32: gloss, bump d/du, bump d/dv
+
+    def sample(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Albedo (3, P) and extras (3, P) at texture pixel coordinates u, v (P,)."""
+        n = len(u)
+        cols = 1024
+        rows = max(1, -(-n // cols))
+        mx = np.zeros(rows * cols, np.float32)
+        my = np.zeros(rows * cols, np.float32)
+        mx[:n] = u
+        my[:n] = v
+        mx, my = mx.reshape(rows, cols), my.reshape(rows, cols)
+        alb = cv2.remap(self.albedo, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        ext = cv2.remap(self.extra, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        return alb.reshape(-1, 3)[:n].T, ext.reshape(-1, 3)[:n].T
+
+
+def make_texture(rng: np.random.Generator, height: int, width: int, palette: Palette) -> Texture:
+    """Procedural tissue: smooth colour variation, mottling, vessels, fine grain with weak-texture
+    patches, a wetness (gloss) map and a bump map."""
+    base = fractal_noise(rng, height, width, 3, 3)
+    mix = np.clip(0.5 + 0.6 * base, 0, 1)[..., None]
+    albedo = (np.array(palette.light, np.float32) * (1 - mix) + np.array(palette.dark, np.float32) * mix)
+    blotch = np.clip(fractal_noise(rng, height, width, 10, 2) * 1.6 - 0.4, 0, 1)[..., None]
+    albedo = albedo * (1 - 0.5 * blotch) + np.array(palette.blotch, np.float32) * 0.5 * blotch
+    grain = fractal_noise(rng, height, width, 48, 3)
+    # Weak-texture patches: the fine grain fades out in places.
+    patch = np.clip(0.6 + 1.4 * fractal_noise(rng, height, width, 4, 1), 0.05, 1.0)
+    albedo *= (1 + palette.grain * grain * patch)[..., None]
+    if palette.vessel_count:
+        vessels = draw_vessels(rng, height, width, palette.vessel_count, (1, 4),
+                               (height // 4, height))
+        fine = draw_vessels(rng, height, width, palette.vessel_count * 3, (1, 2), (height // 10, height // 3))
+        v = np.clip(vessels + 0.6 * fine, 0, 1)[..., None]
+        albedo = albedo * (1 - 0.8 * v) + np.array(palette.vessel, np.float32) * 0.8 * v
+    albedo = np.clip(albedo, 0.0, 1.0).astype(np.float32)
+    gloss = np.clip(palette.gloss * (0.55 + 0.9 * fractal_noise(rng, height, width, 12, 2)), 0, None)
+    bump = fractal_noise(rng, height, width, 30, 2)
+    gu = (np.roll(bump, -1, axis=1) - np.roll(bump, 1, axis=1)) / 2.0  # wraps around the tube
+    gv = np.gradient(bump, axis=0)
+    extra = np.stack([gloss, gu, gv], axis=-1).astype(np.float32)
+    return Texture(albedo, extra)
+
+
+# --- shading ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Light:
+    position: np.ndarray  # (3,) camera frame, mm
+    intensity: float      # radiance scale: a white surface facing the light at distance d gets I/d^2
+
+
+_TONE_BINS = 4096
+_TONE_MAX = 4.0
+
+
+def _tone_curve(x: np.ndarray) -> np.ndarray:
+    y = x / (1.0 + 0.25 * x)
+    return 255.0 * np.power(np.clip(y * 1.25, 0, 1), 1 / 2.2)
+
+
+_TONE_LUT = _tone_curve(np.linspace(0, _TONE_MAX, _TONE_BINS)).astype(np.float32)
+
+
+def tone_map(linear: np.ndarray) -> np.ndarray:
+    """Linear radiance -> display value 0..255 (soft shoulder, then sRGB-like gamma), by table."""
+    idx = np.clip(linear * np.float32((_TONE_BINS - 1) / _TONE_MAX), 0, _TONE_BINS - 1).astype(np.int32)
+    return _TONE_LUT[idx]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _normalize(a: np.ndarray) -> np.ndarray:
+    return a / np.maximum(np.sqrt(_dot(a, a)), np.float32(1e-12))
+
+
+def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
+          shininess: np.ndarray | float, light: Light, specular_tint: np.ndarray | None = None,
+          wrap: float = 0.35, ambient: float = 0.04) -> np.ndarray:
+    """Linear RGB radiance (3, P) of surface points (3, P) with unit normals (3, P) and albedo (3, P)
+    lit by a point light near the camera."""
+    lp = light.position.astype(np.float32)[:, None]
+    to_light = lp - position
+    dist2 = _dot(to_light, to_light)
+    l = to_light / np.sqrt(dist2)
+    view = _normalize(-position)
+    ndl = _dot(normal, l)
+    diffuse = np.clip((ndl + np.float32(wrap)) / np.float32(1 + wrap), 0, None)
+    h = _normalize(l + view)
+    ndh = np.clip(_dot(normal, h), np.float32(1e-6), np.float32(1.0))
+    spec = gloss * np.exp(shininess * np.log(ndh)) * (ndl > 0)
+    falloff = np.float32(light.intensity) / dist2
+    tint = np.ones((3, 1), np.float32) if specular_tint is None else np.asarray(specular_tint, np.float32)[:, None]
+    return albedo * (diffuse * falloff + np.float32(ambient)) + (spec * falloff) * tint
+
+
+def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
+                   strength: float) -> np.ndarray:
+    """Perturb unit normals (3, P) by a bump map's gradients (u around the tube, v along it)."""
+    ts = _normalize(tangent_s - _dot(tangent_s, normal) * normal)
+    tu = np.stack([normal[1] * ts[2] - normal[2] * ts[1], normal[2] * ts[0] - normal[0] * ts[2],
+                   normal[0] * ts[1] - normal[1] * ts[0]])
+    k = np.float32(strength)
+    return _normalize(normal - k * (grad_u * tu + grad_v * ts))
+
+
+def vignette(camera: PinholeCamera, strength: float = 1.0) -> np.ndarray:
+    """(H, W) cos^4-like lens falloff."""
+    u = (np.arange(camera.width) - camera.cx) / camera.fx
+    v = (np.arange(camera.height) - camera.cy) / camera.fy
+    r2 = u[None, :] ** 2 + v[:, None] ** 2
+    return (1.0 / (1.0 + strength * r2) ** 2).astype(np.float32)
+
+
+class NoisePool:
+    """Sensor noise: a few pre-drawn Gaussian noise fields, cropped at random offsets per frame (much
+    cheaper than drawing a fresh field, and indistinguishable for our purposes)."""
+
+    def __init__(self, rng: np.random.Generator, height: int, width: int, sigma: float, count: int = 4):
+        self.h, self.w = height, width
+        pad = 64
+        self.fields = [np.round(rng.normal(0, sigma, (height + pad, width + pad, 3))).astype(np.int16)
+                       for _ in range(count)]
+        self.pad = pad
+
+    def draw(self, rng: np.random.Generator) -> np.ndarray:
+        f = self.fields[int(rng.integers(len(self.fields)))]
+        y, x = rng.integers(0, self.pad, 2)
+        return f[y:y + self.h, x:x + self.w]
+
+
+def finish(display: np.ndarray, noise: np.ndarray, blur_sigma: float) -> np.ndarray:
+    """Display-space float image -> uint8 with optical blur and sensor noise."""
+    img = np.clip(display, 0, 255).astype(np.uint8)
+    if blur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
+    return cv2.add(img, noise, dtype=cv2.CV_8U)
