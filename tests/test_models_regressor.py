@@ -1,0 +1,107 @@
+"""ForceRegressor: a tiny overfit, checkpoints that reload (weights_only) to the same predictions,
+normalisation, and test metrics over overlapping clips."""
+
+import lightning.pytorch as L
+import numpy as np
+import pytest
+import torch
+from clip_fixtures import ClipList, SyntheticClipDataModule, make_clips
+from torch.utils.data import DataLoader
+
+from vfdata.errors import InputError
+from vfmodels import ForceRegressor, SetTransformerLSTM
+
+
+def trainer(tmp_path, epochs, **kw):
+    return L.Trainer(
+        max_epochs=epochs, default_root_dir=tmp_path, logger=False, enable_progress_bar=False,
+        enable_model_summary=False, accelerator="cpu", **kw,
+    )
+
+
+def test_tiny_overfit(tmp_path):
+    L.seed_everything(0)
+    dm = SyntheticClipDataModule(clips=4, frames=8, points=16, batch_size=4)
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6, inducing_points=8), lr=3e-3)
+    batch = next(iter(dm.train_dataloader()))
+    regressor.set_normalisation(**dm.normalisation)
+    with torch.no_grad():
+        before = regressor._loss(regressor(batch), batch["force"]).item()
+    trainer(tmp_path, 80, enable_checkpointing=False, limit_val_batches=0).fit(regressor, dm)
+    with torch.no_grad():
+        after = regressor._loss(regressor.eval()(batch), batch["force"]).item()
+    assert after < 0.05 * before, (before, after)
+
+
+def test_checkpoint_reload_reproduces_predictions(tmp_path):
+    L.seed_everything(0)
+    dm = SyntheticClipDataModule(clips=4, batch_size=2)
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6))
+    t = trainer(tmp_path, 2)
+    t.fit(regressor, dm)
+    best = t.checkpoint_callback.best_model_path
+    assert best
+    checkpoint = torch.load(best, weights_only=True)  # no pickled objects in the checkpoint
+    torch.testing.assert_close(checkpoint["state_dict"]["force_std"], dm.normalisation["force_std"])
+
+    reloaded = ForceRegressor.load(best)
+    trained = ForceRegressor.load(best)  # the best epoch's weights, also via Lightning below
+    batch = next(iter(dm.predict_dataloader()))
+    with torch.no_grad():
+        torch.testing.assert_close(reloaded.predict_forces(batch), trained.predict_forces(batch))
+    via_lightning = trainer(tmp_path, 1).predict(
+        ForceRegressor(SetTransformerLSTM(in_features=6)), dm, ckpt_path=best
+    )
+    torch.testing.assert_close(via_lightning[0]["force_n"], reloaded.predict_forces(batch))
+    # predictions are de-normalised: in N, on the scale of the targets
+    assert via_lightning[0]["force_n"][..., 2].mean() > 0.5
+
+
+def test_normalisation_applies_and_checks():
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=2))
+    regressor.set_normalisation([1.0, 2.0], [2.0, 4.0], [0.0, 0.0, 10.0], [1.0, 1.0, 5.0])
+    x = torch.tensor([3.0, 6.0]).expand(1, 1, 1, 2)
+    torch.testing.assert_close(regressor.normalise_input(x), torch.ones(1, 1, 1, 2))
+    torch.testing.assert_close(regressor.denormalise_force(torch.tensor([0.0, 1.0, 2.0])), torch.tensor([0.0, 1, 20]))
+    with pytest.raises(ValueError):
+        regressor.set_normalisation([0.0, 0.0], [1.0, 0.0], [0.0] * 3, [1.0] * 3)
+
+
+def test_nan_force_frames_are_left_out_of_the_loss():
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6))
+    pred = torch.zeros(1, 4, 3)
+    force = torch.ones(1, 4, 3)
+    force[0, 1] = torch.nan
+    assert regressor._loss(pred, force).item() == pytest.approx(1.0)
+
+
+def test_test_metrics_count_each_frame_once(tmp_path):
+    # Two overlapping clips of one recording (frames 0-15 and 8-23): 24 distinct frames.
+    clips = make_clips(clips=2, frames=16)
+    second = dict(clips[1])
+    second["recording"] = clips[0]["recording"]
+    second["orientation_deg"] = clips[0]["orientation_deg"]
+    second["frame_time_ns"] = clips[0]["frame_time_ns"] + 8 * 33_333_333
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6))
+    t = trainer(tmp_path, 1)
+    t.test(regressor, DataLoader(ClipList([clips[0], second]), batch_size=2))
+    assert regressor.test_results is not None
+    assert set(regressor.test_results["groups"]) == {0.0}
+    # the pooled RMSE is over 24 frames: recompute it from a per-frame prediction
+    with torch.no_grad():
+        batch = next(iter(DataLoader(ClipList([clips[0], second]), batch_size=2)))
+        pred = regressor.predict_forces(batch).numpy()
+    true = batch["force"].numpy()
+    # frames 8-15 are in both clips; they count once, from the first clip, where they have more history
+    frames_pred = np.concatenate([pred[0], pred[1, 8:]])
+    frames_true = np.concatenate([true[0], true[1, 8:]])
+    rmse_fx = np.sqrt(((frames_pred[:, 0] - frames_true[:, 0]) ** 2).mean())
+    assert regressor.test_results["pooled"]["rmse_fx"] == pytest.approx(rmse_fx, rel=1e-5)
+
+
+def test_load_errors(tmp_path):
+    with pytest.raises(InputError):
+        ForceRegressor.load(tmp_path / "missing.ckpt")
+    torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
+    with pytest.raises(InputError, match="not a ForceRegressor checkpoint"):
+        ForceRegressor.load(tmp_path / "other.ckpt")
