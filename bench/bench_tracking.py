@@ -1,0 +1,100 @@
+"""Tracking benchmark: speed of the geometry tracker, and accuracy of every tracker on simulated data.
+
+    python bench/bench_tracking.py                          # speed on a procedural sheet (20,000-pt clouds)
+    python bench/bench_tracking.py data/mini/mini_002 ...   # + accuracy on simulated recordings
+
+Speed: frames/s of GeometryTracker.update with 256 points and 20,000-point clouds, one torch thread per
+process (the deployment: one process per recording), alone and with two recordings in parallel
+processes on the two cores. Wall-clock and process-CPU figures are both printed: on a shared machine
+the CPU figure is the one that does not depend on the other load. Target: >= 26 frames/s.
+
+Accuracy (per recording, error over all frames and points against the simulator's material points):
+full / normal / tangential error median and p95 (mm), coverage and NNI at the force peaks, for
+geometry, geometry+, klt, static (points left where they started) and groundtruth (sanity: ~0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import sys
+import time
+
+import numpy as np
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def speed_run(args: tuple[int, int, int, str]) -> tuple[float, float]:
+    """(wall fps, cpu fps) of `frames` updates on a procedural sheet seeded by `seed`."""
+    import torch
+
+    from vfdata.tracking import GeometryTracker
+    from vfdata.tracking.synthetic import DeformingSheet, press_and_stretch
+
+    frames, cloud_points, seed, mode = args
+    torch.set_num_threads(1)
+    sheet = DeformingSheet(press_and_stretch(frames), seed=seed)
+    clouds = [sheet.cloud(f, cloud_points) for f in range(frames)]
+    tracker = GeometryTracker(clouds[0], num_points=256, seed=seed)
+    for c in clouds[1:4]:  # warm-up: first calls allocate
+        tracker.update(c)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for c in clouds[4:]:
+        tracker.update(c)
+    n = frames - 4
+    return n / (time.perf_counter() - t0), n / (time.process_time() - c0)
+
+
+def bench_speed(frames: int, cloud_points: int) -> None:
+    wall, cpu = speed_run((frames, cloud_points, 0, "geometry"))
+    print(f"speed, 1 process:   {wall:6.1f} frames/s wall, {cpu:6.1f} frames/s CPU (target >= 26)")
+    with mp.get_context("spawn").Pool(2) as pool:
+        results = pool.map(speed_run, [(frames, cloud_points, s, "geometry") for s in (1, 2)])
+    for i, (w, c) in enumerate(results):
+        print(f"speed, 2 processes: {w:6.1f} frames/s wall, {c:6.1f} frames/s CPU (recording {i})")
+
+
+def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) -> None:
+    import torch
+
+    from vfdata.tracking.evaluate import SimRecording, run_tracker, score
+
+    torch.set_num_threads(1)
+    columns = ["full_median_mm", "full_p95_mm", "normal_median_mm", "normal_p95_mm", "tangential_median_mm",
+               "tangential_p95_mm", "coverage", "nni", "lost_at_end", "cpu_fps"]
+    header = ["recording", "tracker", "full med", "full p95", "norm med", "norm p95", "tang med", "tang p95",
+              "coverage", "NNI", "lost", "cpu fps"]
+    print(" ".join(f"{h:>10s}" for h in header))
+    totals: dict[str, list[dict]] = {}
+    for folder in folders:
+        rec = SimRecording.open(folder)
+        for name in trackers:
+            run = run_tracker(name, rec, frames=frames, progress=sys.stderr.isatty())
+            s = score(run, rec)
+            totals.setdefault(name, []).append(s)
+            print(f"{os.path.basename(folder.rstrip('/')):>10s} {name:>10s} "
+                  + " ".join(f"{s[c]:10.3f}" for c in columns), flush=True)
+    if len(folders) > 1:
+        for name, rows in totals.items():
+            print(f"{'mean':>10s} {name:>10s} " + " ".join(f"{np.mean([r[c] for r in rows]):10.3f}" for c in columns))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("recordings", nargs="*", help="simulated raw recording folders (with ground_truth/)")
+    parser.add_argument("--trackers", nargs="+", default=["geometry", "geometry+", "klt", "static", "groundtruth"])
+    parser.add_argument("--frames", type=int, default=None, help="track only the first N frames")
+    parser.add_argument("--speed-frames", type=int, default=120)
+    parser.add_argument("--cloud-points", type=int, default=20000)
+    parser.add_argument("--skip-speed", action="store_true")
+    args = parser.parse_args()
+    if not args.skip_speed:
+        bench_speed(args.speed_frames, args.cloud_points)
+    if args.recordings:
+        bench_accuracy(args.recordings, args.trackers, args.frames)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,169 @@
+"""Running the trackers on a simulated raw recording and scoring them against its ground truth.
+
+The tissue clouds are made from the simulator's ground-truth depth and mask (so the scores isolate the
+tracker from the reconstruction), sub-sampled to a fixed size as the processing pipeline does. The
+scores are those of `vfdata.metrics`: 3D error split along the true surface normal, and coverage and
+NNI at the force peaks.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from vfdata import metrics
+from vfdata.calibration import PinholeCamera, StereoCalibration
+from vfdata.errors import InputError
+from vfdata.tracking.geometry import GeometryTracker
+from vfdata.tracking.groundtruth import ground_truth_tracks
+from vfdata.tracking.klt import KLTTracker
+
+TRACKERS = ("geometry", "geometry+", "klt", "static", "groundtruth")
+
+
+@dataclass
+class SimRecording:
+    """A simulated raw recording folder, read lazily frame by frame."""
+
+    folder: Path
+    camera: PinholeCamera
+    material_points: np.ndarray  # (F, P, 3) mm
+    material_normals: np.ndarray  # (F, P, 3)
+    force_n: np.ndarray  # (F, 3) per frame
+
+    @classmethod
+    def open(cls, folder: str | Path) -> SimRecording:
+        folder = Path(folder)
+        gt = folder / "ground_truth"
+        for needed in ("calibration.yaml", "ground_truth/points.npy", "ground_truth/normals.npy"):
+            if not (folder / needed).is_file():
+                raise InputError(folder, f"not a simulated recording (no {needed})")
+        camera = StereoCalibration.load(folder / "calibration.yaml").rectified.left
+        points = np.load(gt / "points.npy")
+        normals = np.load(gt / "normals.npy")
+        force = np.load(gt / "force.npy") if (gt / "force.npy").is_file() else np.zeros((len(points), 3))
+        return cls(folder, camera, points, normals, force)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.material_points)
+
+    def image(self, frame: int) -> np.ndarray:
+        """(H, W, 3) uint8 RGB left image."""
+        bgr = cv2.imread(str(self.folder / "left" / f"{frame:06d}.png"), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise InputError(self.folder / "left" / f"{frame:06d}.png", "missing or unreadable image")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def mask(self, frame: int) -> np.ndarray:
+        return cv2.imread(str(self.folder / "ground_truth/mask" / f"{frame:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
+
+    def depth_mm(self, frame: int) -> np.ndarray:
+        raw = cv2.imread(str(self.folder / "ground_truth/depth" / f"{frame:06d}.png"), cv2.IMREAD_UNCHANGED)
+        return raw.astype(np.float32) / 10.0  # stored in 0.1 mm, 0 = none
+
+    def cloud(self, frame: int, num_points: int = 20000, seed: int = 0) -> np.ndarray:
+        """The tissue cloud (M <= num_points, 3) mm: masked ground-truth depth, back-projected."""
+        cloud = self.camera.backproject(self.depth_mm(frame), self.mask(frame))
+        if len(cloud) > num_points:
+            cloud = cloud[np.random.default_rng((seed, frame)).choice(len(cloud), num_points, replace=False)]
+        return cloud
+
+
+@dataclass
+class TrackingRun:
+    name: str
+    points: np.ndarray  # (F, n, 3) mm, NaN where a tracker gave none
+    visible: np.ndarray  # (F, n) bool
+    seconds: float  # wall time of the updates alone
+    cpu_seconds: float  # process CPU time of the updates alone
+    scores: dict = field(default_factory=dict)
+
+    @property
+    def frames_per_second(self) -> float:
+        return (len(self.points) - 1) / max(self.seconds, 1e-9)
+
+    @property
+    def cpu_frames_per_second(self) -> float:
+        return (len(self.points) - 1) / max(self.cpu_seconds, 1e-9)
+
+
+def run_tracker(
+    name: str,
+    rec: SimRecording,
+    num_points: int = 256,
+    cloud_points: int = 20000,
+    seed: int = 0,
+    frames: int | None = None,
+    progress: bool = False,
+    **options,
+) -> TrackingRun:
+    """Track `num_points` points through the first `frames` frames of `rec` with tracker `name`."""
+    if name not in TRACKERS:
+        raise ValueError(f"unknown tracker {name!r} (choose from {', '.join(TRACKERS)})")
+    count = rec.num_frames if frames is None else min(frames, rec.num_frames)
+    reference_cloud = rec.cloud(0, cloud_points, seed)
+    reference_image = rec.image(0)
+    if name in ("geometry", "geometry+"):
+        tracker = GeometryTracker(reference_cloud, rec.camera, num_points, seed, mode=name,
+                                  reference_image=reference_image, **options)
+    elif name == "klt":
+        tracker = KLTTracker(reference_cloud, rec.camera, reference_image, num_points, seed, **options)
+    else:
+        tracker = GeometryTracker(reference_cloud, rec.camera, num_points, seed)  # only for its selection
+    points = [tracker.points]
+    visible = [rec.camera.in_mask(tracker.points, rec.mask(0))]
+    truth = None
+    if name == "groundtruth":
+        truth, _ = ground_truth_tracks(tracker.reference, rec.material_points, rec.material_normals)
+    wall = cpu = 0.0
+    for f in tqdm(range(1, count), desc=name, disable=not progress, leave=False):
+        mask = rec.mask(f)
+        if name == "klt":
+            image, depth = rec.image(f), rec.depth_mm(f)
+        elif name in ("geometry", "geometry+"):
+            cloud = rec.cloud(f, cloud_points, seed)
+            image = rec.image(f) if name == "geometry+" else None
+        t0, c0 = time.perf_counter(), time.process_time()
+        if name == "klt":
+            p, v = tracker.update(image, depth, mask)
+        elif name in ("geometry", "geometry+"):
+            p, v = tracker.update(cloud, mask, image=image)
+        else:
+            p = truth[f] if name == "groundtruth" else points[0]
+            v = rec.camera.in_mask(p, mask)
+        wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0
+        points.append(p)
+        visible.append(v)
+    return TrackingRun(name, np.stack(points), np.stack(visible), wall, cpu)
+
+
+def score(run: TrackingRun, rec: SimRecording) -> dict:
+    """Error against ground truth over every frame and point the tracker reports, and coverage / NNI
+    at the force peaks (at every 30th frame when the clip has no peak). Frame 0 of the run holds the
+    reference selection, the same for every tracker."""
+    count = len(run.points)
+    truth, normals = ground_truth_tracks(run.points[0], rec.material_points[:count], rec.material_normals[:count])
+    error = metrics.tracking_error(run.points, truth, normals)
+    peaks = metrics.force_peaks(rec.force_n[:count])
+    judged = peaks if len(peaks) else np.arange(30, count, 30)
+    cover, nni = [], []
+    for f in judged:
+        cover.append(metrics.coverage(rec.camera.project(run.points[f]), rec.mask(f), run.visible[f]))
+        nni.append(metrics.nearest_neighbour_index(run.points[f], run.points[0], run.visible[f], run.visible[0]))
+    lost = float(np.mean(~np.isfinite(run.points[-1]).all(axis=1)))
+    return {
+        **error.as_dict(),
+        "coverage": float(np.mean(cover)) if cover else float("nan"),
+        "nni": float(np.nanmean(nni)) if nni else float("nan"),
+        "peaks": len(peaks),
+        "lost_at_end": lost,
+        "fps": run.frames_per_second,
+        "cpu_fps": run.cpu_frames_per_second,
+    }
