@@ -1,0 +1,189 @@
+"""Report tables and plots from synthetic arrays with known metrics."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import cv2
+import numpy as np
+import pytest
+
+from vfdata import reports
+
+
+def predictions(noise: float, seed: int = 0, orientations=(90.0, 180.0), frames: int = 200) -> dict:
+    rng = np.random.default_rng(seed)
+    parts = []
+    for k, orientation in enumerate(orientations):
+        t = np.arange(frames)
+        true = np.stack([np.sin(t / 10.0), 2 * np.cos(t / 15.0), 0.5 * np.sin(t / 7.0) + 1], axis=1)
+        pred = true + noise * (k + 1) * rng.standard_normal(true.shape)
+        parts.append(dict(recording=np.full(frames, f"rec_{k}"), orientation_deg=np.full(frames, orientation),
+                          frame_time_ns=(t * 33_333_333).astype(np.int64), pred=pred, true=true))
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def test_perfect_predictions_give_zero_error_and_unit_r2():
+    result = reports.run_metrics(predictions(0.0))
+    assert result["pooled"]["rmse"] == pytest.approx(0.0, abs=1e-12)
+    assert result["pooled"]["r2"] == pytest.approx(1.0)
+    assert set(result["groups"]) == {90.0, 180.0}
+
+
+def test_run_metrics_matches_hand_computation_and_orientation_spread():
+    p = predictions(0.1)
+    result = reports.run_metrics(p)
+    err = p["pred"] - p["true"]
+    assert result["pooled"]["rmse_fx"] == pytest.approx(np.sqrt(np.mean(err[:, 0] ** 2)))
+    per = [np.sqrt(np.mean(err[p["orientation_deg"] == o] ** 2, axis=0)).mean() for o in (90.0, 180.0)]
+    assert result["std"]["rmse"] == pytest.approx(np.std(per))
+    # The second orientation has twice the noise: its RMSE is about twice the first's.
+    assert per[1] / per[0] == pytest.approx(2.0, rel=0.15)
+
+
+def test_run_metrics_skips_frames_without_force():
+    p = predictions(0.1)
+    p["true"][:10] = np.nan
+    assert np.isfinite(reports.run_metrics(p)["pooled"]["rmse"])
+
+
+def test_check_predictions_names_the_problem():
+    p = predictions(0.1)
+    del p["frame_time_ns"]
+    with pytest.raises(ValueError, match="frame_time_ns"):
+        reports.check_predictions(p)
+    p = predictions(0.1)
+    p["pred"] = p["pred"][:-1]
+    with pytest.raises(ValueError, match="'pred' has"):
+        reports.check_predictions(p)
+
+
+def test_aggregate_seeds_means_and_spreads():
+    runs = [reports.run_metrics(predictions(0.1, seed=s)) for s in range(3)]
+    agg = reports.aggregate_seeds(runs)
+    values = [r["pooled"]["rmse"] for r in runs]
+    assert agg["value"]["rmse"] == pytest.approx(np.mean(values))
+    assert agg["seed_std"]["rmse"] == pytest.approx(np.std(values))
+    assert agg["orientation_std"]["rmse"] == pytest.approx(np.mean([r["std"]["rmse"] for r in runs]))
+    assert agg["seeds"] == 3
+    with pytest.raises(ValueError):
+        reports.aggregate_seeds([])
+
+
+def _table():
+    return {
+        "proposed": reports.aggregate_seeds([reports.run_metrics(predictions(0.05, seed=s)) for s in range(2)]),
+        "camera_frame": reports.aggregate_seeds([reports.run_metrics(predictions(0.3, seed=s)) for s in range(2)]),
+    }
+
+
+def test_markdown_table_has_every_model_metric_and_value():
+    table = _table()
+    text = reports.force_table_markdown(table, {"proposed": "Proposed", "camera_frame": "Camera frame"}, "Table I")
+    assert "**Table I**" in text
+    assert text.count("| Proposed | RMSE (N) |") == 1 and "| Camera frame | RMSE (N) |" in text
+    assert f"{table['proposed']['value']['rmse']:.3f} ± {table['proposed']['orientation_std']['rmse']:.3f}" in text
+    assert len([line for line in text.splitlines() if line.startswith("|")]) == 2 + 2 * 3
+
+
+def test_csv_round_trips_the_values():
+    table = _table()
+    rows = list(csv.DictReader(io.StringIO(reports.force_table_csv(table))))
+    assert len(rows) == 2 * 3 * 4
+    row = next(r for r in rows if r["model"] == "camera_frame" and r["metric"] == "r2" and r["component"] == "Fy")
+    assert float(row["value"]) == pytest.approx(table["camera_frame"]["value"]["r2_fy"])
+    assert float(row["seed_std"]) == pytest.approx(table["camera_frame"]["seed_std"]["r2_fy"])
+
+
+def test_latex_marks_the_best_value_bold():
+    table = _table()
+    text = reports.force_table_latex(table, {"camera_frame": "Camera_frame & co"}, caption="RMSE 50% lower")
+    best = f"\\textbf{{{table['proposed']['value']['rmse']:.3f}}}"
+    assert best in text
+    assert r"Camera\_frame \& co" in text and r"50\%" in text
+    assert text.count(r"\\") >= 1 + 2 * 3
+    assert "\\begin{tabular}" in text and "\\end{table}" in text
+
+
+def test_write_force_table_writes_three_files(tmp_path):
+    paths = reports.write_force_table(tmp_path / "tables", "table1", _table(), title="Table I")
+    assert sorted(p.suffix for p in paths.values()) == [".csv", ".md", ".tex"]
+    assert all(p.stat().st_size > 100 for p in paths.values())
+
+
+def test_relative_change():
+    assert reports.relative_change(0.49, 1.0) == pytest.approx(-0.51)
+
+
+def test_end_to_end_fps_is_harmonic():
+    assert reports.end_to_end_fps({"depth": 20.0, "tracking": 20.0}) == pytest.approx(10.0)
+    assert reports.end_to_end_fps({"depth": 20.0, "x": 1.0}, ["depth"]) == pytest.approx(20.0)
+
+
+def test_combine_stage_fps_weights_by_frames():
+    # 100 frames at 10 fps (10 s) + 300 frames at 100 fps (3 s) = 400 frames in 13 s.
+    combined = reports.combine_stage_fps([{"depth": 10.0}, {"depth": 100.0}], [100, 300])
+    assert combined["depth"] == pytest.approx(400 / 13)
+
+
+def test_timing_table_lists_stages_and_end_to_end():
+    text = reports.timing_table_markdown({"depth": 20.0, "mask": 100.0, "tracking": 50.0, "force": 1000.0,
+                                          "write": 5.0})
+    assert "| Depth | 20.0 | 50.00 |" in text
+    e2e = 1 / (1 / 20 + 1 / 100 + 1 / 50 + 1 / 1000)
+    assert f"**{e2e:.1f}**" in text
+    assert "Write" not in text
+
+
+def test_tracking_table_shows_error_columns_only_with_ground_truth():
+    rows = {"geometry": {"coverage_mean": 0.72, "coverage_std": 0.05, "nni_mean": 1.02, "nni_std": 0.01, "peaks": 9},
+            "klt": {"coverage_mean": 0.41, "coverage_std": 0.1, "nni_mean": 0.8, "nni_std": 0.1, "peaks": 9}}
+    text = reports.tracking_table_markdown(rows, {"geometry": "Geometry"})
+    assert "| Geometry | 9 | 72.00 ± 5.00 | 1.020 ± 0.010 |" in text
+    assert "median" not in text
+    rows["geometry"]["normal_median_mm"] = 0.2
+    text = reports.tracking_table_markdown(rows)
+    assert "Normal median (mm)" in text and "0.200" in text
+    assert "| klt | 9 | 41.00 ± 10.00 | 0.800 ± 0.100 | – |" in text
+    assert "normal_median_mm" in reports.tracking_table_csv(rows).splitlines()[0]
+
+
+def _is_png(path) -> bool:
+    image = cv2.imread(str(path))
+    return image is not None and image.shape[0] > 100 and image.shape[1] > 100
+
+
+def test_force_curve_plot(tmp_path):
+    path = reports.plot_force_curves(predictions(0.1), tmp_path / "fig7.png", title="test")
+    assert _is_png(path)
+
+
+def test_force_kde_integrates_to_one_and_peaks_at_the_mode():
+    rng = np.random.default_rng(0)
+    samples = rng.normal(2.0, 0.5, 5000)
+    grid = np.linspace(-2, 6, 801)
+    density = reports.force_kde(samples, grid)
+    assert np.trapezoid(density, grid) == pytest.approx(1.0, abs=0.01)
+    assert grid[np.argmax(density)] == pytest.approx(2.0, abs=0.15)
+    spike = reports.force_kde(np.full(10, 1.0), grid)
+    assert np.trapezoid(spike, grid) == pytest.approx(1.0, abs=0.01)
+
+
+def test_force_distribution_plot(tmp_path):
+    rng = np.random.default_rng(1)
+    path = reports.plot_force_distributions(rng.normal(size=(500, 3)), rng.normal(1, 2, size=(300, 3)),
+                                            tmp_path / "fig5.png")
+    assert _is_png(path)
+
+
+def test_tracked_points_plot(tmp_path):
+    image = np.full((120, 160, 3), 80, np.uint8)
+    mask = np.zeros((120, 160), bool)
+    mask[30:90, 40:120] = True
+    uv = np.stack(np.meshgrid(np.linspace(45, 115, 8), np.linspace(35, 85, 8)), -1).reshape(-1, 2)
+    lost = uv.copy()
+    lost[::3] = np.nan
+    path = reports.plot_tracked_points(image, {"geometry": (uv, np.ones(64, bool)),
+                                               "klt": (lost, np.arange(64) % 2 == 0)}, tmp_path / "fig6.png", mask)
+    assert _is_png(path)
