@@ -1,0 +1,136 @@
+"""Bag conversion rate against bare JPEG encoding of the same frames.
+
+Writes a ROS 1 (or ROS 2) bag of raw bgr8 640x512 stereo frames at 30 Hz with a 1 kHz WrenchStamped
+stream and dVRK topic names, then measures, with the same number of threads:
+  - bare: cv2.imencode (JPEG, quality 95) of every left and right frame, already in memory;
+  - convert: `convert_bag` end to end (scan pass, pairing, second pass, decoding, encoding, MCAP).
+Prints stereo frames per second for both and their ratio (target >= 0.7).
+
+    python bench/bench_bags.py [--frames 120] [--workers 2] [--ros2] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import numpy as np
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from vfdata.conversion.bags import convert_bag
+from vfdata.conversion.raw_folder import ConvertOptions
+
+WIDTH, HEIGHT = 640, 512
+T0_NS = 1_700_000_000_000_000_000
+FRAME_NS = 33_333_333
+QUALITY = 95
+
+
+def tissue_like_frames(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Smooth textured frames with some sensor noise, drifting over time, so JPEG does real work."""
+    rng = np.random.default_rng(seed)
+    base = cv2.resize(rng.integers(0, 256, (HEIGHT // 8, (WIDTH + 64) // 8, 3), dtype=np.uint8), (WIDTH + 64, HEIGHT),
+                      interpolation=cv2.INTER_CUBIC)
+    detail = cv2.GaussianBlur(rng.integers(0, 256, (HEIGHT, WIDTH + 64, 3), dtype=np.uint8), (3, 3), 0)
+    scene = cv2.addWeighted(base, 0.7, detail, 0.3, 0)
+    frames = []
+    for i in range(n):
+        shift = i % 32
+        noise = rng.normal(0, 2.0, (2, HEIGHT, WIDTH, 3))
+        left = np.clip(scene[:, shift:shift + WIDTH] + noise[0], 0, 255).astype(np.uint8)
+        right = np.clip(scene[:, shift + 24:shift + 24 + WIDTH] + noise[1], 0, 255).astype(np.uint8)
+        frames.append((left, right))
+    return frames
+
+
+def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: bool) -> None:
+    ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    T = ts.types
+    serialize = ts.serialize_cdr if ros2 else ts.serialize_ros1
+
+    def header(stamp: int, frame: str):
+        time_msg = T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9)
+        fields = {"stamp": time_msg, "frame_id": frame} if ros2 else {"seq": 0, "stamp": time_msg, "frame_id": frame}
+        return T["std_msgs/msg/Header"](**fields)
+
+    writer = Writer2(path, version=9) if ros2 else Writer1(path)
+    with writer:
+        image_type, wrench_type = "sensor_msgs/msg/Image", "geometry_msgs/msg/WrenchStamped"
+        left_c = writer.add_connection("/jhu_daVinci/left/image_raw", image_type, typestore=ts)
+        right_c = writer.add_connection("/jhu_daVinci/right/image_raw", image_type, typestore=ts)
+        info_c = {side: writer.add_connection(f"/jhu_daVinci/{side}/camera_info", "sensor_msgs/msg/CameraInfo",
+                                              typestore=ts) for side in ("left", "right")}
+        force_c = writer.add_connection("/netft_data", wrench_type, typestore=ts)
+        vec = T["geometry_msgs/msg/Vector3"]
+        names = ("d", "k", "r", "p") if ros2 else ("D", "K", "R", "P")
+        for side, tx in (("left", 0.0), ("right", -500.0 * 0.005)):
+            values = (np.zeros(5), np.array([500.0, 0, 320, 0, 500, 256, 0, 0, 1]), np.eye(3).ravel(),
+                      np.array([500.0, 0, 320, tx, 0, 500, 256, 0, 0, 0, 1, 0]))
+            roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+            info = T["sensor_msgs/msg/CameraInfo"](
+                header=header(T0_NS, side), height=HEIGHT, width=WIDTH, distortion_model="plumb_bob",
+                **dict(zip(names, values, strict=True)), binning_x=0, binning_y=0, roi=roi)
+            writer.write(info_c[side], T0_NS, serialize(info, "sensor_msgs/msg/CameraInfo"))
+        force_t = T0_NS - 5_000_000
+        for i, (left, right) in enumerate(frames):
+            stamp = T0_NS + i * FRAME_NS
+            while force_t <= stamp + FRAME_NS:
+                msg = T[wrench_type](header=header(force_t, "ft"), wrench=T["geometry_msgs/msg/Wrench"](
+                    force=vec(x=0.1, y=0.2, z=1.0), torque=vec(x=0.0, y=0.0, z=0.01)))
+                writer.write(force_c, force_t + 100_000, serialize(msg, wrench_type))
+                force_t += 1_000_000
+            for connection, image, frame in ((left_c, left, "left"), (right_c, right, "right")):
+                msg = T[image_type](header=header(stamp, frame), height=HEIGHT, width=WIDTH, encoding="bgr8",
+                                    is_bigendian=0, step=WIDTH * 3, data=image.ravel())
+                writer.write(connection, stamp + 2_000_000, serialize(msg, image_type))
+
+
+def bare_jpeg_seconds(frames: list[tuple[np.ndarray, np.ndarray]], workers: int) -> float:
+    images = [image for pair in frames for image in pair]
+    with ThreadPoolExecutor(workers) as pool:
+        start = time.perf_counter()
+        sizes = list(pool.map(lambda im: len(cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, QUALITY])[1]),
+                              images))
+        elapsed = time.perf_counter() - start
+    assert all(sizes)
+    return elapsed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=120, help="stereo frames in the bag (default 120)")
+    parser.add_argument("--workers", type=int, default=2, help="encoding threads for both (default 2)")
+    parser.add_argument("--ros2", action="store_true", help="write a ROS 2 (sqlite3) bag instead of ROS 1")
+    parser.add_argument("--repeat", type=int, default=3, help="runs of each; the best is reported (default 3)")
+    args = parser.parse_args()
+
+    cv2.setNumThreads(1)  # the thread pool is the only parallelism in both measurements
+    frames = tissue_like_frames(args.frames)
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / ("bench" if args.ros2 else "bench.bag")
+        write_bag(bag, frames, args.ros2)
+        size = sum(p.stat().st_size for p in bag.rglob("*")) if bag.is_dir() else bag.stat().st_size
+        options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, workers=args.workers, progress=False)
+        bare, convert = [], []
+        for _ in range(args.repeat):
+            bare.append(bare_jpeg_seconds(frames, args.workers))
+            out = Path(tmp) / "out.mcap"
+            start = time.perf_counter()
+            convert_bag(bag, out, overwrite=True, options=options)
+            convert.append(time.perf_counter() - start)
+        bare_fps, convert_fps = args.frames / min(bare), args.frames / min(convert)
+        print(f"bag: {'ROS 2 sqlite3' if args.ros2 else 'ROS 1'}, {args.frames} stereo frames bgr8 {WIDTH}x{HEIGHT}, "
+              f"{size / 1e6:.0f} MB; JPEG quality {QUALITY}; {args.workers} threads")
+        print(f"bare JPEG encoding:  {bare_fps:7.1f} stereo frames/s  (best of {args.repeat}: {min(bare):.2f} s)")
+        print(f"bag conversion:      {convert_fps:7.1f} stereo frames/s  (best of {args.repeat}: {min(convert):.2f} s)")
+        print(f"ratio conversion / bare: {convert_fps / bare_fps:.2f}  (target >= 0.7)")
+
+
+if __name__ == "__main__":
+    main()
