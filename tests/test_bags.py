@@ -24,6 +24,8 @@ from vfdata.conversion.bags import BagTopics, convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recording import layout
+from vfdata.recording.inspect import check_file
+from vfdata.recording.messages import PoseStamped, WrenchStamped
 from vfdata.recording.reader import Recording
 
 T0_NS = 1_700_000_000_123_456_789
@@ -178,8 +180,8 @@ def write_bag(path: Path, spec: BagSpec) -> BagSpec:
 
 
 def check_recording(out: Path, spec: BagSpec) -> Recording:
+    assert check_file(out) == []  # what `vfdata check` runs: layout, stamps, CRCs
     rec = Recording.open(out)
-    assert rec.problems == []
     n = spec.frames
     # frames: the left stamps, both images carry them; pixels exact for PNG output
     assert np.array_equal(rec.frame_times_ns, spec.frame_ns)
@@ -297,6 +299,19 @@ def test_raw_image_decoding():
         bags.raw_image_to_bgr(2, 4, "bgr8", 0, 12, b"\0" * 20)
     with pytest.raises(bags.UnsupportedImage, match="compressedDepth"):
         bags.compressed_format("16UC1; compressedDepth png")
+
+
+def test_stamped_payloads_match_message_encoding():
+    rng = np.random.default_rng(1)
+    stamps = np.array([1_700_000_000_123_456_789, 5, 3 * 10**9 + 7])
+    for frame_id in ("", "a", "ati_sensor", "abcdefg", "world"):
+        wrench, pose = rng.normal(size=(3, 6)), rng.normal(size=(3, 7))
+        assert bags.stamped_payloads(stamps, frame_id, wrench) == [
+            WrenchStamped(int(t), frame_id, tuple(w[:3]), tuple(w[3:])).encode() for t, w in zip(stamps, wrench,
+                                                                                                   strict=True)]
+        assert bags.stamped_payloads(stamps, frame_id, pose) == [
+            PoseStamped(int(t), frame_id, tuple(p[:3]), tuple(p[3:])).encode() for t, p in zip(stamps, pose,
+                                                                                                 strict=True)]
 
 
 def test_pair_stamps_mutual_nearest_within_tolerance():
