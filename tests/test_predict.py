@@ -1,0 +1,213 @@
+"""vfdata.predict: overlay drawing, token building, windowed causal inference, streaming = offline,
+and the /force/estimate MCAP."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from vfdata import predict
+from vfdata.calibration import PinholeCamera
+from vfdata.errors import InputError
+from vfdata.recording import Recording, layout
+from vfmodels import ForceRegressor, SetTransformerLSTM
+
+
+def test_force_to_camera_uses_the_object_axes():
+    rotation = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
+    f_obj = np.array([[1.0, 0.0, 0.0], [0.3, -2.0, 0.5]])
+    f_cam = predict.force_to_camera(f_obj, rotation)
+    np.testing.assert_allclose(f_cam[0], rotation[:, 0])
+    np.testing.assert_allclose(f_cam[1] @ rotation, f_obj[1], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(f_cam, axis=1), np.linalg.norm(f_obj, axis=1))
+
+
+def test_project_point():
+    camera = PinholeCamera(500.0, 500.0, 320.0, 256.0, 640, 512)
+    assert predict.project_point(camera, np.array([10.0, -20.0, 100.0])) == pytest.approx((370.0, 156.0))
+
+
+def _changed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return (np.abs(a.astype(int) - b.astype(int)).sum(axis=2) > 30)
+
+
+def test_overlay_arrow_points_along_the_in_plane_force():
+    image = np.full((200, 200, 3), 40, np.uint8)
+    out = predict.draw_force_overlay(image, (100, 100), np.array([1.0, 0.0, 0.0]), px_per_n=50)
+    changed = _changed(out, image)
+    assert changed[100, 130:148].all()  # along +x (right)
+    assert not changed[100, 30:80].any() and not changed[20:80, 100].any()
+    out = predict.draw_force_overlay(image, (100, 100), np.array([0.0, -1.0, 0.0]), px_per_n=50)
+    assert _changed(out, image)[55:85, 100].all()  # -y is up in the image
+
+
+def test_overlay_circle_radius_and_colour_follow_the_depth_component():
+    image = np.zeros((200, 200, 3), np.uint8)
+    away = predict.draw_force_overlay(image, (100, 100), np.array([0.0, 0.0, 1.2]), px_per_n=50)
+    ring = _changed(away, image)
+    assert ring[100, 160] and ring[100, 40] and not ring[100, 150]  # radius 60
+    assert away[100, 160, 1] > away[100, 160, 2]  # green: into the scene
+    toward = predict.draw_force_overlay(image, (100, 100), np.array([0.0, 0.0, -1.2]), px_per_n=50)
+    assert toward[100, 160, 2] > toward[100, 160, 1]  # red: toward the camera
+    nothing = predict.draw_force_overlay(image, (100, 100), np.full(3, np.nan), px_per_n=50)
+    rows, cols = np.nonzero(_changed(nothing, image))
+    assert np.abs(rows - 100).max() <= 6 and np.abs(cols - 100).max() <= 6  # the origin marker only
+
+
+def test_overlay_scale_fits_the_largest_force():
+    force = np.zeros((100, 3))
+    force[:, 0] = np.linspace(0, 2.0, 100)
+    assert predict.overlay_scale(force, 640) * np.percentile(force[:, 0], 99) == pytest.approx(128.0)
+    assert predict.overlay_scale(np.zeros((5, 3)), 640) == 40.0
+
+
+def test_overlay_video_writes_a_readable_mp4(tmp_path):
+    path = tmp_path / "o.mp4"
+    with predict.OverlayVideo(path, fps=15) as video:
+        for k in range(12):
+            video.write(np.full((96, 128, 3), 20 * k, np.uint8))
+    capture = cv2.VideoCapture(str(path))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 12
+    ok, frame = capture.read()
+    assert ok and frame.shape == (96, 128, 3)
+    assert not list(tmp_path.glob("*.partial*"))
+
+
+def test_force_series_plot(tmp_path):
+    t = np.arange(50)
+    force = np.stack([np.sin(t / 5), np.cos(t / 5), t / 50], axis=1)
+    path = predict.plot_force_series(force, tmp_path / "f.png", measured_n=force + 0.1)
+    assert cv2.imread(str(path)).shape[0] > 100
+
+
+def test_central_velocity_of_uniform_motion_is_constant_including_the_ends():
+    t = np.arange(10)[:, None, None]
+    points = np.concatenate([2.0 * t, -1.0 * t, 0 * t], axis=2) * np.ones((1, 4, 1))
+    v = predict.central_velocity(points, fps=30.0)
+    np.testing.assert_allclose(v[..., 0], 60.0)
+    np.testing.assert_allclose(v[..., 1], -30.0)
+    accel = predict.central_velocity(np.arange(5.0)[:, None, None] ** 2 * np.ones((1, 1, 3)), fps=1.0)
+    np.testing.assert_allclose(accel[2, 0], [4.0] * 3)  # (9 - 1) / 2
+
+
+def test_point_tokens_variants():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(6, 50, 3))
+    visible = rng.random((6, 50)) > 0.2
+    rotation = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    origin = np.array([1.0, 2.0, 50.0])
+    tokens, valid = predict.point_tokens(points, visible, predict.TokenSpec())
+    assert tokens.shape == (6, 50, 6) and tokens.dtype == np.float32
+    np.testing.assert_array_equal(valid, visible)
+    cam, _ = predict.point_tokens(points, visible, predict.TokenSpec(frame="camera", features="position"),
+                                  rotation, origin)
+    np.testing.assert_allclose(cam, points @ rotation.T + origin, rtol=1e-6)
+    vel, _ = predict.point_tokens(points, visible, predict.TokenSpec(features="velocity", fps=10.0))
+    np.testing.assert_allclose(vel, predict.central_velocity(points, 10.0), rtol=1e-5, atol=1e-5)
+    sub, sub_valid = predict.point_tokens(points, visible, predict.TokenSpec(subset="top_bottom"))
+    keep = predict.top_bottom_selection(points[0])
+    assert sub.shape == (6, 20, 6)
+    z = points[0, :, 2]
+    assert set(keep) == set(np.argsort(z)[:10]) | set(np.argsort(z)[-10:])
+    np.testing.assert_array_equal(sub_valid, visible[:, keep])
+    with pytest.raises(Exception, match="object frame"):
+        predict.point_tokens(points, visible, predict.TokenSpec(frame="camera"))
+
+
+def _regressor(seed: int = 0) -> ForceRegressor:
+    torch.manual_seed(seed)
+    reg = ForceRegressor(SetTransformerLSTM(in_features=6, dim=32, heads=4, inducing_points=8, lstm_hidden=48))
+    reg.set_normalisation(torch.zeros(6), torch.full((6,), 10.0), torch.tensor([0.1, -0.2, 0.5]),
+                          torch.tensor([1.0, 2.0, 0.5]))
+    return reg.eval()
+
+
+def _tracks(frames: int = 40, n: int = 64, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    base = rng.normal(scale=10.0, size=(n, 3))
+    t = np.arange(frames)[:, None, None] / 30.0
+    points = base + np.sin(2 * np.pi * t) * np.array([2.0, 0.0, -1.0]) * np.exp(-np.abs(base[:, :1]) / 10)
+    visible = rng.random((frames, n)) > 0.1
+    return points, visible
+
+
+def test_windowed_forces_equal_the_model_on_each_causal_window():
+    reg = _regressor()
+    points, visible = _tracks()
+    spec = predict.TokenSpec()
+    forces = predict.forces_from_tracks(reg, spec, points, visible, np.eye(3), np.zeros(3), window=8)
+    tokens, valid = predict.point_tokens(points, visible, spec)
+    with torch.no_grad():
+        for t in (0, 3, 7, 8, 25, 39):
+            lo = max(0, t - 7)
+            batch = {"tokens": torch.from_numpy(tokens[lo:t + 1])[None],
+                     "valid": torch.from_numpy(valid[lo:t + 1])[None]}
+            expected = reg.predict_forces(batch)[0, -1].numpy()
+            np.testing.assert_allclose(forces[t], expected, rtol=1e-4, atol=1e-5)
+        full = reg.predict_forces({"tokens": torch.from_numpy(tokens)[None], "valid": torch.from_numpy(valid)[None]})
+    carried = predict.forces_from_tracks(reg, spec, points, visible, np.eye(3), np.zeros(3), window=None)
+    np.testing.assert_allclose(carried, full[0].numpy(), rtol=1e-4, atol=1e-5)
+    # A later frame never changes an earlier estimate (causality).
+    shorter = predict.forces_from_tracks(reg, spec, points[:30], visible[:30], np.eye(3), np.zeros(3), window=8)
+    np.testing.assert_allclose(shorter[:29], forces[:29], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("window", [8, None])
+@pytest.mark.parametrize("subset", ["all", "top_bottom"])
+def test_streaming_model_reproduces_the_offline_forces(window, subset):
+    reg = _regressor(1)
+    points, visible = _tracks(frames=25)
+    spec = predict.TokenSpec(subset=subset)
+    offline = predict.forces_from_tracks(reg, spec, points, visible, np.eye(3), np.zeros(3), window=window)
+    stream = predict.StreamingForceModel(reg, spec, np.eye(3), np.zeros(3), window=window)
+    stamps = np.arange(25) * 33_333_333
+    results = [stream.push(s, p, v) for s, p, v in zip(stamps, points, visible, strict=True)]
+    assert results[0] is None
+    results = results[1:] + [stream.flush()]
+    assert [r[0] for r in results] == list(stamps)
+    np.testing.assert_allclose(np.stack([r[1] for r in results]), offline, rtol=1e-4, atol=1e-5)
+
+
+def _save_checkpoint(reg: ForceRegressor, path, datamodule_hp: dict | None = None):
+    checkpoint = {"state_dict": reg.state_dict(), "hyper_parameters": dict(reg.hparams)}
+    reg.on_save_checkpoint(checkpoint)
+    if datamodule_hp is not None:
+        checkpoint["datamodule_hyper_parameters"] = datamodule_hp
+    torch.save(checkpoint, path)
+    return path
+
+
+def test_load_force_model_reads_the_token_spec_and_checks_features(tmp_path):
+    reg = _regressor()
+    ckpt = _save_checkpoint(reg, tmp_path / "m.ckpt", {"frame": "camera", "fps": 25.0})
+    loaded, spec = predict.load_force_model(ckpt)
+    assert spec.frame == "camera" and spec.fps == 25.0 and spec.features == "position+velocity"
+    points, visible = _tracks(frames=10)
+    np.testing.assert_allclose(
+        predict.forces_from_tracks(loaded, predict.TokenSpec(), points, visible, np.eye(3), np.zeros(3)),
+        predict.forces_from_tracks(reg, predict.TokenSpec(), points, visible, np.eye(3), np.zeros(3)), rtol=1e-5)
+    with pytest.raises(InputError, match="features per point"):
+        predict.load_force_model(ckpt, predict.TokenSpec(features="position"))
+    with pytest.raises(InputError, match="checkpoint not found"):
+        predict.load_force_model(tmp_path / "missing.ckpt")
+
+
+def test_force_mcap_round_trip(tmp_path):
+    times = 1_700_000_000_000_000_000 + np.arange(5, dtype=np.int64) * 33_333_333
+    force = np.arange(15, dtype=np.float64).reshape(5, 3) / 7
+    rotation = Rotation.from_euler("y", 30, degrees=True).as_matrix()
+    path = predict.write_force_mcap(tmp_path / "x.force.mcap", times, force, rotation, np.array([1.0, 2.0, 80.0]),
+                                    {"x_axis": "arbitrary"})
+    t, f = predict.read_force_estimate(path)
+    np.testing.assert_array_equal(t, times)
+    np.testing.assert_allclose(f, force)
+    with Recording.open(path) as rec:
+        _, msg = next(rec.messages(layout.FORCE_ESTIMATE))
+        assert msg.frame_id == layout.OBJECT_FRAME and np.isnan(msg.torque).all()
+        _, tf = next(rec.messages(layout.TF_STATIC))
+        assert tf.transforms[0].child_frame_id == layout.OBJECT_FRAME
+        np.testing.assert_allclose(tf.transforms[0].translation, [0.001, 0.002, 0.08])
+        assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == "arbitrary"
