@@ -64,8 +64,8 @@ GLOVE = TissueKind(
     maxwell_tau_s=(0.8, 2.0),
     kind_factors=(1.0, 1.0, 0.5, 3.0, 0.5, 2.0),
     grasp_fraction=(0.74, 0.82),
-    reach_lo=(-0.12, -0.42, -0.06),
-    reach_hi=(0.38, 0.42, 0.22),
+    reach_lo=(-0.15, -0.5, -0.05),
+    reach_hi=(0.45, 0.5, 0.15),
     camera_distance_mm=(78.0, 92.0),
     palette=Palette(light=(0.80, 0.58, 0.46), dark=(0.66, 0.40, 0.32), vessel=(0.42, 0.07, 0.09),
                     blotch=(0.75, 0.36, 0.34), vessel_count=5, gloss=0.55, shininess=70.0, grain=0.22),
@@ -81,7 +81,7 @@ COLON = TissueKind(
     tip_ratio=(0.65, 0.8),
     n_rings=22,
     n_around=16,
-    modulus_mpa=(0.045, 0.07),
+    modulus_mpa=(0.11, 0.15),
     wall_mm=(2.0, 3.0),
     density_kg_m3=1040.0,
     stiffening=(10.0, 16.0),
@@ -89,19 +89,19 @@ COLON = TissueKind(
     kelvin_voigt_s=(0.06, 0.12),
     maxwell_ratio=(0.4, 0.7),
     maxwell_tau_s=(1.0, 3.0),
-    kind_factors=(1.0, 1.0, 0.4, 2.0, 0.35, 1.2),
+    kind_factors=(1.0, 1.0, 0.5, 3.0, 0.5, 2.5),
     grasp_fraction=(0.72, 0.82),
-    reach_lo=(-0.08, -0.32, -0.04),
-    reach_hi=(0.3, 0.32, 0.16),
+    reach_lo=(-0.1, -0.5, -0.03),
+    reach_hi=(0.5, 0.5, 0.11),
     camera_distance_mm=(120.0, 140.0),
-    palette=Palette(light=(0.78, 0.40, 0.38), dark=(0.52, 0.15, 0.16), vessel=(0.33, 0.03, 0.06),
-                    blotch=(0.85, 0.66, 0.52), vessel_count=14, gloss=0.8, shininess=80.0, grain=0.16),
+    palette=Palette(light=(0.74, 0.36, 0.34), dark=(0.46, 0.10, 0.12), vessel=(0.30, 0.02, 0.05),
+                    blotch=(0.78, 0.52, 0.42), vessel_count=14, gloss=0.8, shininess=80.0, grain=0.16),
     dense_s=56,
     dense_theta=44,
 )
 
-BED_PALETTE = Palette(light=(0.86, 0.62, 0.55), dark=(0.55, 0.12, 0.13), vessel=(0.38, 0.03, 0.05),
-                      blotch=(0.92, 0.80, 0.55), vessel_count=40, gloss=0.55, shininess=55.0, grain=0.14)
+BED_PALETTE = Palette(light=(0.86, 0.58, 0.54), dark=(0.44, 0.06, 0.08), vessel=(0.32, 0.02, 0.04),
+                      blotch=(0.95, 0.82, 0.58), vessel_count=14, gloss=0.6, shininess=45.0, grain=0.12)
 
 
 @dataclass(frozen=True)

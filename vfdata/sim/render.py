@@ -249,18 +249,18 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
 
 
 def tileable_noise(rng: np.random.Generator, height: int, width: int, cells: tuple[int, int]) -> np.ndarray:
-    """Smooth value noise in [-1, 1]-ish, periodic across columns: random values on a cells grid,
-    bicubically upsampled."""
+    """Smooth value noise (unit variance-ish), periodic in both directions: random values on a cells
+    grid, bicubically upsampled with wrapped padding."""
     gh, gw = cells
-    low = rng.standard_normal((gh + 4, gw)).astype(np.float32)
-    low = np.pad(low, ((0, 0), (2, 2)), mode="wrap")
+    low = rng.standard_normal((gh, gw)).astype(np.float32)
+    low = np.pad(low, 2, mode="wrap")
     cell_w = width / gw
     cell_h = height / gh
     big = cv2.resize(low, (int(round((gw + 4) * cell_w)), int(round((gh + 4) * cell_h))),
                      interpolation=cv2.INTER_CUBIC)
     x0 = int(round(2 * cell_w))
     y0 = int(round(2 * cell_h))
-    return big[y0:y0 + height, x0:x0 + width] / 1.0
+    return big[y0:y0 + height, x0:x0 + width]
 
 
 def fractal_noise(rng: np.random.Generator, height: int, width: int, base_cells: int, octaves: int,
@@ -277,28 +277,28 @@ def fractal_noise(rng: np.random.Generator, height: int, width: int, base_cells:
 
 def draw_vessels(rng: np.random.Generator, height: int, width: int, count: int, thickness: tuple[int, int],
                  length_px: tuple[int, int]) -> np.ndarray:
-    """A mask (float32, 0..1) of branching, meandering vessels, periodic across columns."""
-    canvas = np.zeros((height, 3 * width), np.uint8)
+    """A mask (float32, 0..1) of branching, meandering vessels, periodic in both directions."""
+    canvas = np.zeros((3 * height, 3 * width), np.uint8)
 
     def walk(x: float, y: float, heading: float, length: int, thick: int, depth: int) -> None:
         pts = [(x, y)]
         step = 4.0
         for _ in range(max(2, int(length / step))):
-            heading += rng.normal(0, 0.25)
+            heading += rng.normal(0, 0.22)
             x += step * np.cos(heading)
             y += step * np.sin(heading)
             pts.append((x, y))
-            if depth < 2 and rng.random() < 0.04:
+            if depth < 2 and rng.random() < 0.035:
                 walk(x, y, heading + rng.choice([-1, 1]) * rng.uniform(0.5, 1.1), int(length * 0.5),
                      max(1, thick - 1), depth + 1)
         poly = np.round(np.array(pts) * 16).astype(np.int32)
         cv2.polylines(canvas, [poly], False, 255, thick, cv2.LINE_AA, 4)
 
     for _ in range(count):
-        walk(rng.uniform(width, 2 * width), rng.uniform(0, height), rng.uniform(0, 2 * np.pi),
+        walk(rng.uniform(width, 2 * width), rng.uniform(height, 2 * height), rng.uniform(0, 2 * np.pi),
              int(rng.integers(*length_px)), int(rng.integers(*thickness)), 0)
-    folded = np.maximum(np.maximum(canvas[:, :width], canvas[:, width:2 * width]), canvas[:, 2 * width:])
-    return cv2.GaussianBlur(folded.astype(np.float32) / 255.0, (0, 0), 0.8)
+    tiles = canvas.reshape(3, height, 3, width).max(axis=(0, 2))
+    return cv2.GaussianBlur(tiles.astype(np.float32) / 255.0, (0, 0), 0.8)
 
 
 @dataclass(frozen=True)
@@ -348,14 +348,15 @@ def make_texture(rng: np.random.Generator, height: int, width: int, palette: Pal
     patch = np.clip(0.6 + 1.4 * fractal_noise(rng, height, width, 4, 1), 0.05, 1.0)
     albedo *= (1 + palette.grain * grain * patch)[..., None]
     if palette.vessel_count:
-        vessels = draw_vessels(rng, height, width, palette.vessel_count, (1, 4),
-                               (height // 4, height))
-        fine = draw_vessels(rng, height, width, palette.vessel_count * 3, (1, 2), (height // 10, height // 3))
-        v = np.clip(vessels + 0.6 * fine, 0, 1)[..., None]
-        albedo = albedo * (1 - 0.8 * v) + np.array(palette.vessel, np.float32) * 0.8 * v
+        vessels = draw_vessels(rng, height, width, palette.vessel_count, (2, 5), (height // 4, height))
+        fine = draw_vessels(rng, height, width, palette.vessel_count * 2, (1, 2), (height // 10, height // 3))
+        # Vessels lie at varying depth under the surface: their contrast fades in and out.
+        fade = np.clip(0.55 + 0.7 * fractal_noise(rng, height, width, 5, 2), 0.1, 1.0)
+        v = (np.clip(0.85 * vessels + 0.45 * fine, 0, 1) * fade)[..., None]
+        albedo = albedo * (1 - 0.75 * v) + np.array(palette.vessel, np.float32) * 0.75 * v
     albedo = np.clip(albedo, 0.0, 1.0).astype(np.float32)
     gloss = np.clip(palette.gloss * (0.55 + 0.9 * fractal_noise(rng, height, width, 12, 2)), 0, None)
-    bump = fractal_noise(rng, height, width, 30, 2)
+    bump = fractal_noise(rng, height, width, 14, 2)
     gu = (np.roll(bump, -1, axis=1) - np.roll(bump, 1, axis=1)) / 2.0  # wraps around the tube
     gv = np.gradient(bump, axis=0)
     extra = np.stack([gloss, gu, gv], axis=-1).astype(np.float32)

@@ -75,7 +75,7 @@ class SceneSpec:
     exposure: float = 1.0
     noise_sigma: float = 2.2
     blur_sigma: float = 0.6
-    bump_strength: float = 3.0
+    bump_strength: float = 1.2
     dense_s: int = 48
     dense_theta: int = 40
     tex_size: tuple[int, int] = (512, 512)
@@ -163,8 +163,8 @@ class SceneRenderer:
     def _bed_mesh(self) -> Mesh:
         """A bumpy bed of other tissue under the fixture (object frame)."""
         spec = self.spec
-        n = 110
-        half = 260.0
+        n = 120
+        half = 420.0
         g = np.linspace(-half, half, n)
         yy, zz = np.meshgrid(g, g + spec.tube.shape.length_mm / 2, indexing="ij")
         height = 9.0 * fractal_noise(self.rng, n, n, 3, 2) + 4.0 * fractal_noise(self.rng, n, n, 9, 1)
@@ -174,7 +174,7 @@ class SceneRenderer:
         gz = np.gradient(xx, g, axis=1)
         normals = np.stack([np.ones_like(gy), -gy, -gz], axis=-1).reshape(-1, 3)
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        scale = 1024 / 160.0  # texture pixels per mm; the texture wraps
+        scale = 1024 / 240.0  # texture pixels per mm; the texture wraps
         uv = np.stack([yy.ravel() * scale, zz.ravel() * scale], axis=1)
         return Mesh(verts, grid_quads(n, n, wrap_cols=False), normals, uv)
 
@@ -245,17 +245,17 @@ class SceneRenderer:
         shaft_dir = spec.rcm_o_mm - grasp_o
         shaft_dir /= np.linalg.norm(shaft_dir)
         side = 1.0 if np.dot(shaft_dir, a) >= 0 else -1.0
-        hinge = grasp_o + side * 5.0 * a + 1.8 * b
+        hinge = grasp_o + side * 6.0 * a + 2.4 * b
         parts = []
         for sign in (-1.0, 1.0):
             open_rot = rotation_about(b, sign * side * (jaw_rad / 2 + np.radians(2.0)))
             d = open_rot @ (-side * a)
             nn = open_rot @ n
-            centre = hinge + 5.0 * d + sign * 0.9 * nn - 0.6 * b
-            parts.append(box_mesh(centre, np.stack([d, nn, b], axis=1), np.array([5.2, 0.7, 1.3]), STEEL,
-                                  taper=0.7))
+            centre = hinge + 6.0 * d + sign * 1.25 * nn - 0.4 * b
+            parts.append(box_mesh(centre, np.stack([d, nn, b], axis=1), np.array([6.2, 1.0, 1.9]), STEEL,
+                                  taper=0.6))
         wrist_end = hinge + 9.0 * shaft_dir
-        parts.append(cylinder_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.0, 20, STEEL, True, False))
+        parts.append(cylinder_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.2, 20, STEEL, True, False))
         far = spec.rcm_o_mm + 40.0 * shaft_dir
         pieces = 10
         edges = wrist_end + (far - wrist_end) * (np.linspace(0, 1, pieces + 1) ** 2)[:, None]

@@ -31,7 +31,7 @@ from vfdata.sim.scene import CameraSetup, SceneRenderer, SceneSpec, object_rotat
 from vfdata.sim.tissue import Tube, TubeShape
 from vfdata.sim.trajectory import GraspTrajectory, MotionLimits, plan_trajectory
 
-PHYSICS_HZ = 120.0
+PHYSICS_HZ = 60.0
 SENSOR_HZ = 1000.0
 N_MATERIAL_POINTS = 2000
 FOCAL_PX_AT_640 = 560.0
@@ -319,7 +319,7 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
     meta = {
         "study": rec.plan.tissue.study,
         "tissue": rec.plan.tissue.description,
-        "orientation_deg": float(rec.plan.orientation_deg),
+        "orientation_deg": _number(rec.plan.orientation_deg),
         "split": rec.plan.split,
         "prompt_box": first_box,
         "synthetic": True,
@@ -388,11 +388,16 @@ def point_visibility(camera: PinholeCamera, points_c: np.ndarray, normals_c: np.
 # --- the dataset ------------------------------------------------------------------------------------------
 
 
+def _number(x: float) -> int | float:
+    return int(x) if float(x).is_integer() else float(x)
+
+
 def manifest(preset: Preset, root: str) -> dict:
+    """The dataset manifest (docs/architecture.md) of a preset, with recordings under `root`."""
     return {
         "name": preset.name,
         "root": root,
-        "recordings": [{"id": r.id, "orientation_deg": float(r.orientation_deg), "split": r.split}
+        "recordings": [{"id": r.id, "orientation_deg": _number(r.orientation_deg), "split": r.split}
                        for r in preset.recordings],
     }
 
