@@ -98,8 +98,11 @@ def bench_conversion(workdir: Path, frames: int) -> None:
           f"ratio {b / o:.2f} (target >= 0.7; one thread)")
 
 
-def write_long(path: Path, seconds: float, jpeg_pair: tuple[bytes, bytes]) -> None:
+def write_long(path: Path, seconds: float, jpeg_pair: tuple[bytes, bytes], unique: bool = False) -> None:
+    """A long recording: 1 kHz force and 30 Hz stereo images. `unique`: every image gets different
+    (random, incompressible) bytes of the same size, so the file really is as large as its images."""
     t0 = 1_700_000_000_000_000_000
+    noise = np.random.default_rng(1)
     n_force = int(seconds * 1000)
     with McapWriter(path, overwrite=True, separate_topics=(layout.WRENCH,)) as w:
         w.add_metadata(layout.RECORDING_METADATA, layout.RecordingMeta(recording_id="bench").to_record())
@@ -110,8 +113,12 @@ def write_long(path: Path, seconds: float, jpeg_pair: tuple[bytes, bytes]) -> No
             v = values[k]
             w.write(layout.WRENCH, WrenchStamped(stamp, "force_sensor", (v[0], v[1], v[2]), (v[3], v[4], v[5])))
             if k % 33 == 0:
-                w.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", jpeg_pair[0]))
-                w.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, "jpeg", jpeg_pair[1]))
+                left, right = jpeg_pair
+                if unique:
+                    left = noise.bytes(len(left))
+                    right = noise.bytes(len(right))
+                w.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", left))
+                w.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, "jpeg", right))
 
 
 def bench_force_and_clips(workdir: Path) -> None:
@@ -150,7 +157,7 @@ def bench_streaming_memory(workdir: Path, gigabytes: float) -> None:
     pair = tuple(image.data for image in conv.frame_images(0))
     seconds = gigabytes * 1e9 / (len(pair[0]) + len(pair[1])) / 30
     path = workdir / "big.mcap"
-    write_long(path, seconds, pair)
+    write_long(path, seconds, pair, unique=True)
     size = path.stat().st_size
     code = (
         "import resource, sys\n"

@@ -231,39 +231,26 @@ class McapFile:
         length = struct.unpack_from("<Q", records, offset + 1)[0]
         return memoryview(records)[offset + _MESSAGE_HEAD: offset + 9 + length]
 
-    def payload_matrix(self, channel_id: int) -> list[np.ndarray]:
-        """All payloads of a channel as (N_i, L_i) uint8 matrices, one per distinct payload length
-        (in practice one), in log-time order within each. For fixed-size messages (wrench, pose)."""
+    def iter_payload_matrices(self, channel_id: int):
+        """A channel's payloads as (N_i, L_i) uint8 matrices, chunk by chunk and one per distinct
+        payload length (in practice one): for fixed-size messages (wrench, pose), decoded with numpy
+        one chunk at a time so that memory stays at one chunk's worth."""
         loc = self.index.messages[channel_id]
-        if len(loc) == 0:
-            return []
-        parts_by_len: dict[int, list[np.ndarray]] = {}
-        order_by_len: dict[int, list[np.ndarray]] = {}
         for chunk in np.unique(loc.chunk):
             sel = np.nonzero(loc.chunk == chunk)[0]
             if chunk < 0:
-                buffers = [np.frombuffer(self.payload(channel_id, int(i)), dtype=np.uint8) for i in sel]
-                for i, buf in zip(sel, buffers, strict=True):
-                    parts_by_len.setdefault(len(buf), []).append(buf[None])
-                    order_by_len.setdefault(len(buf), []).append(np.array([i]))
+                for i in sel:
+                    yield np.frombuffer(bytes(self.payload(channel_id, int(i))), dtype=np.uint8)[None]
                 continue
             records = np.frombuffer(self.chunk_records(int(chunk)), dtype=np.uint8)
             offsets = loc.offset[sel]
             length_bytes = records[(offsets + 1)[:, None] + np.arange(8)]
             payload_len = length_bytes.copy().view("<u8").ravel().astype(np.int64) - (_MESSAGE_HEAD - 9)
             for length in np.unique(payload_len):
-                pick = payload_len == length
-                starts = offsets[pick] + _MESSAGE_HEAD
+                starts = offsets[payload_len == length] + _MESSAGE_HEAD
                 if starts.max() + length > len(records):
                     raise FormatError(self.path, "message runs past the end of its chunk")
-                parts_by_len.setdefault(int(length), []).append(records[starts[:, None] + np.arange(length)])
-                order_by_len.setdefault(int(length), []).append(sel[pick])
-        result = []
-        for length, parts in parts_by_len.items():
-            matrix = np.concatenate(parts)
-            order = np.argsort(np.concatenate(order_by_len[length]), kind="stable")
-            result.append(matrix[order])
-        return result
+                yield records[starts[:, None] + np.arange(length)]
 
     def iter_payloads(self, channel_id: int, start: int = 0, stop: int | None = None):
         """(log_time_ns, payload) of a channel's messages in log-time order."""

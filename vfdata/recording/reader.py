@@ -265,7 +265,7 @@ class Recording:
         """The whole force/torque series, sorted by header stamp."""
         channel = self._channel(layout.WRENCH)
         times, values = [], []
-        for matrix in self._mcap.payload_matrix(channel.id):
+        for matrix in self._mcap.iter_payload_matrices(channel.id):
             t, v = decode_wrench_batch(matrix)
             times.append(t)
             values.append(v)
@@ -284,7 +284,7 @@ class Recording:
     def ecm_pose(self) -> PoseSeries:
         channel = self._channel(layout.ECM_POSE)
         times, values = [], []
-        for matrix in self._mcap.payload_matrix(channel.id):
+        for matrix in self._mcap.iter_payload_matrices(channel.id):
             t, v = decode_pose_batch(matrix)
             times.append(t)
             values.append(v)
