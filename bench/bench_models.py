@@ -1,0 +1,123 @@
+"""Speed of the proposed force model (SetTransformerLSTM, 256 points x 6 features, T = 16).
+
+Prints, for each variant (eager / torch.compile, fp32 / bf16 autocast, fused / unfused attention):
+- inference throughput, batched (frames/s; target >= 2,000 on 2 CPU cores),
+- single-clip latency (ms per 16-frame clip, batch 1),
+- training throughput (frames/s, forward + backward + AdamW step; target >= 400 on 2 CPU cores).
+
+    python bench/bench_models.py [--threads 2] [--device cpu|cuda] [--quick]
+
+Timings on a shared machine vary with its load: the script prints the load average next to them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import time
+
+import torch
+from torch.nn.attention import SDPBackend, sdpa_kernel
+
+from vfmodels import ForceRegressor, SetTransformerLSTM
+
+T, N, C = 16, 256, 6
+
+
+def clips(batch: int, device: str) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    return {
+        "tokens": torch.randn(batch, T, N, C, generator=g).to(device),
+        "valid": (torch.rand(batch, T, N, generator=g) > 0.1).to(device),
+        "force": torch.randn(batch, T, 3, generator=g).to(device),
+    }
+
+
+def timed(fn, min_seconds: float, device: str, warmup: int = 2) -> float:
+    """Seconds per call (median of repeated timings after warm-up)."""
+    for _ in range(warmup):
+        fn()
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    sync()
+    times, start = [], time.perf_counter()
+    while time.perf_counter() - start < min_seconds or len(times) < 3:
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def precision(bf16: bool, device: str):
+    return torch.autocast(device, dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+
+
+def attention(fused: bool):
+    return contextlib.nullcontext() if fused else sdpa_kernel(SDPBackend.MATH)
+
+
+def bench_variant(compiled: bool, bf16: bool, fused: bool, args) -> dict[str, float]:
+    torch.manual_seed(0)
+    model = SetTransformerLSTM(in_features=C).to(args.device)
+    run = torch.compile(model) if compiled else model
+    out = {}
+
+    model.eval()
+    batch = clips(args.batch, args.device)
+    single = clips(1, args.device)
+    with torch.inference_mode(), precision(bf16, args.device), attention(fused):
+        s = timed(lambda: run(batch["tokens"], batch["valid"]), args.seconds, args.device)
+        out["infer_fps"] = args.batch * T / s
+        s = timed(lambda: run(single["tokens"], single["valid"]), args.seconds, args.device)
+        out["latency_ms"] = s * 1e3
+
+    model.train()
+    regressor = ForceRegressor(model)
+    optimiser = regressor.configure_optimizers()
+    train_batch = clips(args.train_batch, args.device)
+
+    def step():
+        with precision(bf16, args.device), attention(fused):
+            loss = regressor._loss(run(train_batch["tokens"], train_batch["valid"]), train_batch["force"])
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        optimiser.step()
+
+    s = timed(step, args.seconds, args.device)
+    out["train_fps"] = args.train_batch * T / s
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--batch", type=int, default=64, help="clips per inference batch")
+    parser.add_argument("--train-batch", type=int, default=32, help="clips per training batch")
+    parser.add_argument("--seconds", type=float, default=5.0, help="minimum timing per figure")
+    parser.add_argument("--quick", action="store_true", help="eager and compiled fp32 fused only")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.set_float32_matmul_precision("high")
+    variants = [(False, False, True), (True, False, True)]
+    if not args.quick:
+        variants += [(False, False, False), (False, True, True), (True, True, True)]
+    device_name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {args.threads} threads"
+    print(f"SetTransformerLSTM, clips of T={T} frames x N={N} points x C={C}; {device_name}; "
+          f"inference batch {args.batch} clips, training batch {args.train_batch} clips")
+    print(f"{'variant':34}{'infer frames/s':>16}{'1-clip ms':>11}{'train frames/s':>16}{'load avg':>10}")
+    for compiled, bf16, fused in variants:
+        name = ", ".join(["compiled" if compiled else "eager", "bf16" if bf16 else "fp32",
+                          "fused attn" if fused else "math attn"])
+        r = bench_variant(compiled, bf16, fused, args)
+        load = os.getloadavg()[0]
+        print(f"{name:34}{r['infer_fps']:>16.0f}{r['latency_ms']:>11.1f}{r['train_fps']:>16.0f}{load:>10.1f}",
+              flush=True)
+    print("targets (2 CPU cores): inference >= 2,000 frames/s; training >= 400 frames/s; "
+          "paper: 37,000 frames/s on an RTX A5000")
+
+
+if __name__ == "__main__":
+    main()
