@@ -548,11 +548,12 @@ class StreamingForceEstimator:
                  up: np.ndarray | None = None, window: int | None = CLIP_FRAMES, num_points: int = 256,
                  seed: int = 0, spec: TokenSpec | None = None, depth_options: dict | None = None,
                  segment_options: dict | None = None, tracker_options: dict | None = None):
-        from vfdata.recon import make_depth_estimator, make_segmenter, parse_prompt
+        from vfdata.recon import Prompt, make_depth_estimator, make_segmenter
 
         self.regressor, self.spec = load_force_model(ckpt, spec)
         self.camera, self.baseline_mm = camera, float(baseline_mm)
-        self.prompt = parse_prompt(prompt, camera.width, camera.height)
+        self.prompt = Prompt.parse(prompt)
+        self.prompt.check_inside(camera.width, camera.height)
         self.depth = make_depth_estimator(depth, **(depth_options or {}))
         self.segmenter = make_segmenter(segment, **(segment_options or {}))
         self.tracker_name, self.tracker_options = tracker, dict(tracker_options or {})
@@ -589,7 +590,10 @@ class StreamingForceEstimator:
         t0 = t = time.perf_counter()
         depth = self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
         t = self._clock("depth", t)
-        mask = self.segmenter.start(left, self.prompt) if self.frames == 0 else self.segmenter.track(left)
+        if self.frames == 0:
+            mask = self.segmenter.start(left, self.prompt, depth)
+        else:
+            mask = self.segmenter.track(left, depth)
         t = self._clock("mask", t)
         cloud = tissue_cloud(depth, mask, self.camera)
         t = self._clock("cloud", t)

@@ -1,0 +1,52 @@
+"""`vfdata experiment MANIFEST --out DIR`: the paper's grid (proposed model, ablations, baselines x
+seeds) on one dataset, then Tables I-III, the timing table and the figures (docs/experiments.md)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from vfdata.experiment import VARIANTS
+
+    p = sub.add_parser(
+        "experiment", help="train and test every model variant x seed on a dataset; write the tables and plots",
+        description="Converts and processes every recording of the manifest (once per tracker needed; existing "
+                    "outputs are kept), trains and tests each variant with each seed (finished runs are not "
+                    "repeated), and writes Tables I-III, the timing table and the figures into OUT. Variants: "
+                    + ", ".join(VARIANTS) + ".")
+    p.add_argument("manifest", type=Path, help="dataset manifest, e.g. datasets/glove.manifest.yaml")
+    p.add_argument("--out", type=Path, required=True, help="results folder, e.g. results/glove")
+    p.add_argument("--seeds", type=int, default=3, help="seeds per variant (default 3)")
+    p.add_argument("--epochs", type=int, help="training epochs (default: the config's, 60)")
+    p.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: all)")
+    p.add_argument("--configs", type=Path, help="folder of the training configs (default: the repository's configs/)")
+    p.add_argument("--depth", default="sgbm", help="depth backend for processing (default sgbm)")
+    p.add_argument("--segment", default="colortrack", help="mask backend for processing (default colortrack)")
+    p.add_argument("--workers", type=int, default=1, help="recordings processed in parallel (default 1)")
+    p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")
+    p.add_argument("--reports-only", action="store_true", help="only (re)write the tables and plots of OUT")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("train_args", nargs=argparse.REMAINDER,
+                   help="after --, extra LightningCLI arguments for every run (e.g. -- --data.batch_size=16)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from vfdata.experiment import ExperimentOptions, run_experiment, summary_text, write_reports
+
+    if args.reports_only:
+        paths = write_reports(args.out, args.manifest)
+        print(summary_text(args.out, paths))
+        return 0
+    options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants,
+                                depth=args.depth, segment=args.segment, workers=args.workers,
+                                max_frames=args.max_frames, progress=not args.quiet,
+                                train_args=[a for a in args.train_args if a != "--"])
+    if args.configs is not None:
+        options.configs = args.configs
+    result = run_experiment(args.manifest, args.out, options)
+    print(summary_text(result.out, result.reports))
+    print("wall time: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.seconds.items()))
+    return 0

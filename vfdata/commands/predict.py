@@ -1,0 +1,101 @@
+"""`vfdata predict RECORDING.mcap --ckpt CKPT`: forces from video alone (no force sensor, no ECM pose),
+written as /force/estimate with a plot and an overlay video; `--stream` runs frame by frame."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "predict", help="estimate forces on a recording without a force sensor (overlay video, plot, MCAP)",
+        description="Processes the recording (depth, tissue mask, object frame, tracks), runs the trained "
+                    "point model and writes OUT/<id>.force.mcap (/force/estimate, WrenchStamped in the object "
+                    "frame 'tissue_object'), OUT/<id>.force.png and OUT/<id>.overlay.mp4. Without an ECM pose "
+                    "the object frame's X axis is arbitrary (the image's up direction made perpendicular to "
+                    "the tissue axis). --stream feeds the frames one by one to the live estimator instead and "
+                    "reports its per-frame latency.")
+    p.add_argument("recording", type=Path, help="recording MCAP (stereo images; force and ECM pose optional)")
+    p.add_argument("--ckpt", type=Path, required=True, help="trained checkpoint (train.py / vfdata experiment)")
+    p.add_argument("--prompt", help="first-frame tissue prompt, e.g. box:x0,y0,x1,y1 "
+                                    "(default: prompt_box of the recording's metadata)")
+    p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
+    p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
+    p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
+    p.add_argument("--window", type=int, default=16,
+                   help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
+    p.add_argument("--max-frames", type=int, help="only the first N frames")
+    p.add_argument("--no-video", action="store_true", help="skip the overlay video")
+    p.add_argument("--stream", action="store_true", help="run the live, frame-by-frame estimator")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    window = None if args.window == 0 else args.window
+    if args.stream:
+        return _stream(args, window)
+    from vfdata.predict import predict_recording
+    from vfdata.processing import ProcessOptions
+
+    options = ProcessOptions(depth=args.depth, segment=args.segment, tracker="geometry", max_frames=args.max_frames)
+    result = predict_recording(args.recording, args.ckpt, args.out, prompt=args.prompt, process_options=options,
+                               window=window, video=not args.no_video, progress=not args.quiet)
+    print(f"{result.frames} frames; object frame X axis "
+          f"{'from gravity (ECM pose)' if result.up_known else 'arbitrary (no ECM pose)'}")
+    stages = {**result.stage_fps, "force": result.force_fps}
+    print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
+    for path in (result.force_mcap, result.plot, result.video):
+        if path is not None:
+            print(f"wrote {path}")
+    return 0
+
+
+def _stream(args: argparse.Namespace, window: int | None) -> int:
+    from tqdm import tqdm
+
+    from vfdata.errors import InputError
+    from vfdata.predict import StreamingForceEstimator, write_force_mcap
+    from vfdata.processing import camera_up
+    from vfdata.recording import Recording
+
+    out = args.out or args.recording.parent
+    with Recording.open(args.recording) as rec:
+        prompt = args.prompt or rec.metadata.extra.get("prompt_box")
+        if not prompt:
+            raise InputError(args.recording, "no tissue prompt: give --prompt box:x0,y0,x1,y1")
+        if not prompt.startswith(("box:", "points:", "pos:", "neg:")):
+            values = json.loads(prompt) if prompt.strip().startswith("[") else prompt.split(",")
+            prompt = "box:" + ",".join(str(int(round(float(v)))) for v in values)
+        estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm, prompt,
+                                            depth=args.depth, segment=args.segment, up=camera_up(rec),
+                                            window=window)
+        n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
+        estimates, latencies = [], []
+        for i in tqdm(range(n), desc="stream", unit="frame", disable=args.quiet):
+            frame = rec.rectified_frame(i)  # decoding stands in for the camera driver: not timed
+            started = time.perf_counter()
+            result = estimator.push(frame.left, frame.right, frame.stamp_ns)
+            latencies.append(time.perf_counter() - started)
+            if result is not None:
+                estimates.append(result)
+        last = estimator.flush()
+        if last is not None:
+            estimates.append(last)
+    latency_ms = np.array(latencies[1:]) * 1000.0  # the first push also fixes the object frame
+    stem = args.recording.name.removesuffix(".mcap")
+    path = write_force_mcap(Path(out) / f"{stem}.force.mcap", np.array([e.stamp_ns for e in estimates]),
+                            np.stack([e.force_n for e in estimates]), estimator.frame.rotation,
+                            estimator.frame.origin, {"stage": "predict --stream", "window": str(window)})
+    per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
+    print(f"{len(estimates)} estimates from {n} frames; per-frame latency (push) median "
+          f"{np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} ms, "
+          f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ one frame of delay for the central-difference velocity)")
+    print("ms/frame per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in per_stage.items()))
+    print(f"wrote {path}")
+    return 0

@@ -1,0 +1,585 @@
+"""The experiment grid of the paper: every model variant x seed on one dataset, then the reports.
+
+    vfdata experiment datasets/glove.manifest.yaml --out results/glove [--seeds 3] [--epochs 60]
+
+Steps (docs/experiments.md):
+1. Prepare: every recording of the manifest is converted (raw folder -> `<id>.mcap`) and processed
+   once per tracker the chosen variants need: `<id>.processed.mcap` with the geometry tracker (the
+   proposed model and most ablations), `<id>.klt.mcap` with the KLT stand-in. Existing outputs are
+   kept. A manifest per tracker is written to `OUT/manifests/`.
+2. Train and test each variant x seed in-process through `train.py`'s LightningCLI with the
+   variant's config from `configs/`: best checkpoint by validation loss, then the test recordings.
+   Each run folder `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames: recording,
+   orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run with a
+   metrics.json is finished and is not repeated, so an interrupted grid resumes where it stopped.
+3. Report (`write_reports`): Tables I and II, Table III (tracking), the timing table and the plots
+   into OUT/ (see vfdata.reports).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from vfdata import reports
+from vfdata.errors import InputError, VisionForceError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# ---- the grid ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One row of the force tables: a training config, the tracker whose tracks it reads, and the
+    table it belongs to (I: the proposed model against the image baselines; II: the ablations)."""
+
+    name: str
+    label: str
+    config: str  # relative to configs/
+    tracker: str = "geometry"
+    table: str = "II"
+
+
+VARIANTS: dict[str, Variant] = {v.name: v for v in (
+    Variant("proposed", "Proposed (object frame, geometry tracking)", "proposed.yaml", table="I+II"),
+    Variant("camera_frame", "Camera frame", "ablation_camera_frame.yaml"),
+    Variant("klt", "KLT tracking (CoTracker stand-in)", "proposed.yaml", tracker="klt"),
+    Variant("point_cloud", "Point cloud", "ablation_point_cloud.yaml"),
+    Variant("position_only", "Position only", "ablation_position_only.yaml"),
+    Variant("velocity_only", "Velocity only", "ablation_velocity_only.yaml"),
+    Variant("top_bottom", "Top/bottom 20%", "ablation_top_bottom.yaml"),
+    Variant("rgb", "RGB only (3D ResNet-18)", "baseline_rgb.yaml", table="I"),
+    Variant("depth_vit", "Masked depth + ViT-Small", "baseline_depth_vit.yaml", table="I"),
+)}
+
+# Derived file name per tracker (the manifest's `processed:` key points the datasets at it).
+TRACKER_SUFFIX = {"geometry": ".processed.mcap", "klt": ".klt.mcap", "geometry+": ".geometry_plus.mcap",
+                  "groundtruth": ".gt.mcap"}
+
+
+@dataclass
+class ExperimentOptions:
+    seeds: int = 3
+    epochs: int | None = None  # None: the config's (60)
+    variants: list[str] | None = None  # None: all
+    configs: Path = REPO / "configs"
+    depth: str = "sgbm"
+    segment: str = "colortrack"
+    workers: int = 1  # recordings processed in parallel processes
+    max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
+    train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
+    progress: bool = True
+
+    def chosen(self) -> list[Variant]:
+        names = self.variants or list(VARIANTS)
+        unknown = [n for n in names if n not in VARIANTS]
+        if unknown:
+            raise VisionForceError(f"unknown variant(s) {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+        return [VARIANTS[n] for n in names]
+
+
+# ---- manifests -----------------------------------------------------------------------------------
+
+
+@dataclass
+class Entry:
+    id: str
+    orientation_deg: float
+    split: str
+    raw: Path
+    mcap: Path
+
+    def processed(self, tracker: str) -> Path:
+        return self.mcap.with_name(self.id + TRACKER_SUFFIX.get(tracker, f".{tracker}.mcap"))
+
+
+def read_manifest(path: str | Path) -> tuple[dict, list[Entry]]:
+    """The manifest dict and its recordings with absolute raw-folder and MCAP paths."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "dataset manifest not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"not valid YAML ({exc})") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("recordings"), list) or not data["recordings"]:
+        raise InputError(path, "a manifest needs a non-empty 'recordings' list")
+    root = (path.parent / str(data.get("root", "."))).resolve()
+    entries = []
+    for item in data["recordings"]:
+        if not isinstance(item, dict) or "id" not in item or item.get("split") not in ("train", "val", "test"):
+            raise InputError(path, f"recording entry {item!r} needs an id and a split (train, val or test)")
+        rid = str(item["id"])
+        entries.append(Entry(rid, float(item.get("orientation_deg", 0.0)), item["split"],
+                             root / str(item.get("raw", rid)), root / str(item.get("mcap", f"{rid}.mcap"))))
+    return data, entries
+
+
+def tracker_manifest(data: dict, entries: list[Entry], tracker: str, out: Path) -> Path:
+    """A copy of the manifest whose `processed:` entries name the tracker's derived files (absolute
+    paths, so it can live anywhere)."""
+    copy = {k: v for k, v in data.items() if k not in ("root", "recordings")}
+    copy["name"] = f"{data.get('name', 'dataset')}-{tracker}"
+    copy["root"] = str(entries[0].mcap.parent)
+    copy["recordings"] = [
+        {"id": e.id, "orientation_deg": e.orientation_deg, "split": e.split, "raw": str(e.raw),
+         "mcap": str(e.mcap), "processed": str(e.processed(tracker))} for e in entries
+    ]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(copy, sort_keys=False))
+    return out
+
+
+# ---- step 1: convert and process -----------------------------------------------------------------
+
+
+def _convert(entry: Entry, progress: bool) -> None:
+    from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+
+    if entry.mcap.is_file():
+        return
+    if not entry.raw.is_dir():
+        raise InputError(entry.raw, f"recording {entry.id}: neither the raw folder nor {entry.mcap.name} exists "
+                                    "(for simulated data run `vfdata synth --preset NAME DIR` first)")
+    convert_raw_folder(entry.raw, entry.mcap, options=ConvertOptions(progress=progress))
+
+
+def _process_one(job: tuple[str, str, str, str, str, int | None]) -> str:
+    from vfdata.processing import ProcessOptions, process_recording
+
+    src, out, tracker, depth, segment, max_frames = job
+    # One BLAS/torch thread per process: several recordings run side by side instead.
+    import torch
+
+    torch.set_num_threads(1)
+    process_recording(src, out, ProcessOptions(depth=depth, segment=segment, tracker=tracker,
+                                               max_frames=max_frames, progress=False))
+    return out
+
+
+def prepare(entries: list[Entry], trackers: list[str], options: ExperimentOptions) -> dict[str, float]:
+    """Convert what is missing, then process every recording for each tracker (skipping outputs that
+    exist). Returns wall seconds per step."""
+    seconds = {}
+    started = time.perf_counter()
+    for entry in tqdm(entries, desc="convert", unit="recording", disable=not options.progress):
+        _convert(entry, progress=False)
+    seconds["convert"] = time.perf_counter() - started
+    jobs = [(str(e.mcap), str(e.processed(t)), t, options.depth, options.segment, options.max_frames)
+            for t in trackers for e in entries if not e.processed(t).is_file()]
+    started = time.perf_counter()
+    if jobs:
+        bar = tqdm(total=len(jobs), desc="process", unit="recording", disable=not options.progress)
+        if options.workers > 1:
+            with ProcessPoolExecutor(options.workers) as pool:
+                for _ in pool.map(_process_one, jobs):
+                    bar.update()
+        else:
+            for job in jobs:
+                _process_one(job)
+                bar.update()
+        bar.close()
+    seconds["process"] = time.perf_counter() - started
+    return seconds
+
+
+# ---- step 2: train and test ----------------------------------------------------------------------
+
+
+def _train_module():
+    """train.py (the LightningCLI entry point at the repository root)."""
+    path = REPO / "train.py"
+    if not path.is_file():
+        raise VisionForceError(f"{path}: train.py not found (the experiment runner needs the repository checkout)")
+    spec = importlib.util.spec_from_file_location("visionforce_train", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def clip_frames(parts: list[dict]) -> dict[str, np.ndarray]:
+    """Per-frame test results from overlapping clips: each frame once, from the clip in which it had
+    the most history (the latest position), as an online causal estimator would give it. `parts`
+    are per-batch dicts of flat arrays: recording, orientation_deg, frame_time_ns, position, pred, true."""
+    frames = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    rec = frames["recording"].astype(str)
+    order = np.lexsort((-frames["position"], frames["frame_time_ns"], rec))
+    rec_o, time_o = rec[order], frames["frame_time_ns"][order]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (rec_o[1:] != rec_o[:-1]) | (time_o[1:] != time_o[:-1])
+    keep = order[first]
+    out = {k: v[keep] for k, v in frames.items() if k != "position"}
+    out["recording"] = out["recording"].astype(str)
+    return out
+
+
+def test_predictions(regressor, loader) -> tuple[dict[str, np.ndarray], float]:
+    """Run a trained regressor over a test loader -> (per-frame predictions, model frames/s)."""
+    import torch
+
+    parts, model_seconds, model_frames = [], 0.0, 0
+    regressor.eval()
+    with torch.no_grad():
+        for batch in loader:
+            started = time.perf_counter()
+            pred = regressor.predict_forces(batch).float().numpy()
+            model_seconds += time.perf_counter() - started
+            b, t = pred.shape[:2]
+            model_frames += b * t
+            parts.append(dict(
+                recording=np.repeat(np.asarray(batch["recording"], dtype=object), t),
+                orientation_deg=np.repeat(torch.as_tensor(batch["orientation_deg"]).float().numpy(), t),
+                frame_time_ns=batch["frame_time_ns"].numpy().reshape(-1).astype(np.int64),
+                position=np.tile(np.arange(t), b),
+                pred=pred.reshape(-1, 3).astype(np.float64),
+                true=batch["force"].float().numpy().reshape(-1, 3).astype(np.float64),
+            ))
+    if not parts:
+        raise VisionForceError("the test split gave no clips")
+    return clip_frames(parts), model_frames / max(model_seconds, 1e-9)
+
+
+def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options: ExperimentOptions) -> dict:
+    """Train (best checkpoint by validation loss) and test one variant with one seed; writes
+    predictions.npz and, last, metrics.json (the marker of a finished run)."""
+    import lightning.pytorch as L
+    import torch
+
+    from vfmodels.regressor import ForceRegressor
+
+    config = options.configs / variant.config
+    if not config.is_file():
+        raise InputError(config, f"config of variant '{variant.name}' not found")
+    train = _train_module()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    args = [f"--config={config}", f"--data.manifest={manifest}", f"--seed_everything={seed}",
+            f"--trainer.default_root_dir={run_dir}", "--trainer.enable_progress_bar=false",
+            "--trainer.enable_model_summary=false", *options.train_args]
+    if options.epochs is not None:
+        args.append(f"--trainer.max_epochs={options.epochs}")
+    started = time.perf_counter()
+    cli = train.ForceCLI(ForceRegressor, L.LightningDataModule, subclass_mode_data=True,
+                         save_config_kwargs={"overwrite": True}, run=False, args=args)
+    # Reuse the last checkpoint of an interrupted run of this variant and seed.
+    last = run_dir / "checkpoints" / "last.ckpt"
+    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=str(last) if last.is_file() else None)
+    train_seconds = time.perf_counter() - started
+    best = cli.trainer.checkpoint_callback.best_model_path or str(train.best_checkpoint(run_dir / "checkpoints"))
+
+    regressor = ForceRegressor.load(best)
+    datamodule = cli.datamodule
+    datamodule.setup("test")
+    threads = torch.get_num_threads()
+    predictions, force_fps = test_predictions(regressor, datamodule.test_dataloader())
+    np.savez_compressed(run_dir / "predictions.npz", **predictions)
+    metrics = reports.run_metrics(predictions)
+    summary = {
+        "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config),
+        "checkpoint": str(Path(best).resolve()), "epochs": cli.trainer.current_epoch,
+        "train_seconds": round(train_seconds, 1), "test_frames": int(len(predictions["true"])),
+        "force_fps": force_fps, "torch_threads": threads,
+        "pooled": metrics["pooled"], "mean": metrics["mean"], "std": metrics["std"],
+        "groups": {str(k): v for k, v in metrics["groups"].items()},
+    }
+    tmp = run_dir / "metrics.json.partial"
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(run_dir / "metrics.json")
+    return summary
+
+
+@dataclass
+class ExperimentResult:
+    out: Path
+    runs: dict[str, list[Path]]  # variant -> run folders with metrics
+    reports: dict[str, Path]
+    seconds: dict[str, float]
+
+
+def run_experiment(manifest: str | Path, out: str | Path, options: ExperimentOptions | None = None
+                   ) -> ExperimentResult:
+    """The whole grid (see the module docstring); resumable."""
+    options = options or ExperimentOptions()
+    manifest, out = Path(manifest), Path(out)
+    data, entries = read_manifest(manifest)
+    variants = options.chosen()
+    trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
+    out.mkdir(parents=True, exist_ok=True)
+    seconds = prepare(entries, trackers, options)
+    manifests = {t: tracker_manifest(data, entries, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
+    (out / "experiment.json").write_text(json.dumps({
+        "manifest": str(manifest.resolve()), "variants": [v.name for v in variants], "seeds": options.seeds,
+        "epochs": options.epochs, "depth": options.depth, "segment": options.segment,
+        "max_frames": options.max_frames, "cpu_count": os.cpu_count(),
+    }, indent=2))
+
+    grid = [(v, s) for v in variants for s in range(options.seeds)]
+    runs: dict[str, list[Path]] = {v.name: [] for v in variants}
+    started = time.perf_counter()
+    bar = tqdm(grid, desc="experiment", unit="run", disable=not options.progress)
+    for variant, seed in bar:
+        run_dir = out / "runs" / variant.name / f"seed{seed}"
+        bar.set_postfix_str(f"{variant.name} seed {seed}")
+        if not (run_dir / "metrics.json").is_file():
+            run_one(variant, seed, manifests[variant.tracker], run_dir, options)
+        runs[variant.name].append(run_dir)
+    bar.close()
+    seconds["train_test"] = time.perf_counter() - started
+    started = time.perf_counter()
+    paths = write_reports(out, manifest)
+    seconds["reports"] = time.perf_counter() - started
+    (out / "timing_wall.json").write_text(json.dumps(seconds, indent=2))
+    return ExperimentResult(out, runs, paths, seconds)
+
+
+# ---- step 3: reports -----------------------------------------------------------------------------
+
+
+def load_runs(out: Path) -> dict[str, list[dict]]:
+    """{variant: [run_metrics result per finished seed]} from OUT/runs/*/seed*/predictions.npz, in
+    the order of VARIANTS (unknown folders last)."""
+    found: dict[str, list[dict]] = {}
+    for metrics_path in sorted((out / "runs").glob("*/seed*/metrics.json")):
+        predictions = np.load(metrics_path.parent / "predictions.npz", allow_pickle=False)
+        found.setdefault(metrics_path.parent.parent.name, []).append(reports.run_metrics(dict(predictions)))
+    order = [n for n in VARIANTS if n in found] + sorted(set(found) - set(VARIANTS))
+    return {name: found[name] for name in order}
+
+
+def _force_tables(out: Path, runs: dict[str, list[dict]], dataset: str) -> dict[str, Path]:
+    labels = {n: v.label for n, v in VARIANTS.items()}
+    aggregated = {name: reports.aggregate_seeds(r) for name, r in runs.items()}
+    table1 = {n: a for n, a in aggregated.items() if "I" in VARIANTS.get(n, Variant(n, n, "")).table.split("+")}
+    table2 = {n: a for n, a in aggregated.items() if "II" in VARIANTS.get(n, Variant(n, n, "")).table.split("+")}
+    paths = {}
+    if table1:
+        for suffix, path in reports.write_force_table(out, "table1_force", table1, labels,
+                                                      f"Table I: force estimation on {dataset}, proposed model "
+                                                      "and image baselines").items():
+            paths[f"table1.{suffix}"] = path
+    if table2:
+        for suffix, path in reports.write_force_table(out, "table2_ablations", table2, labels,
+                                                      f"Table II: ablations on {dataset}").items():
+            paths[f"table2.{suffix}"] = path
+    checked = claims(aggregated)
+    if checked:
+        (out / "claims.json").write_text(json.dumps(checked, indent=2))
+        paths["claims"] = out / "claims.json"
+    return paths
+
+
+def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
+    """The paper's claims checked on the average RMSE (N): each with the two values and whether it holds."""
+    rmse = {name: agg["value"]["rmse"] for name, agg in aggregated.items()}
+    result = {}
+
+    def compare(key: str, better: str, worse: str, factor: float = 1.0, text: str = "") -> None:
+        if better in rmse and worse in rmse:
+            result[key] = {"text": text, better: rmse[better], worse: rmse[worse],
+                           "holds": bool(rmse[better] <= factor * rmse[worse])}
+
+    if "proposed" in rmse and "camera_frame" in rmse:
+        result["object_frame_halves_rmse"] = {
+            "text": "object frame lowers the average RMSE by >= 50% vs the camera frame",
+            "proposed": rmse["proposed"], "camera_frame": rmse["camera_frame"],
+            "reduction": -reports.relative_change(rmse["proposed"], rmse["camera_frame"]),
+            "holds": bool(rmse["proposed"] <= 0.5 * rmse["camera_frame"]),
+        }
+    compare("geometry_beats_klt", "proposed", "klt", text="geometry tracking beats KLT")
+    compare("beats_position_only", "proposed", "position_only", text="position + velocity beats position only")
+    compare("beats_velocity_only", "proposed", "velocity_only", text="position + velocity beats velocity only")
+    compare("beats_rgb", "proposed", "rgb", text="proposed beats RGB only")
+    compare("beats_depth_vit", "proposed", "depth_vit", text="proposed beats masked depth + ViT")
+    return result
+
+
+def tracking_quality(processed: Path, recording: Path, ground_truth: Path | None) -> dict:
+    """Coverage and NNI at the force peaks of one recording and, with simulator ground truth, the
+    tracking error over all frames: {"coverage": [...], "nni": [...], "error": TrackingError dict}."""
+    import cv2
+
+    from vfdata import metrics
+    from vfdata.predict import read_tracks
+    from vfdata.recording import Recording, layout
+    from vfdata.tracking import ground_truth_tracks
+
+    tracks = read_tracks(processed)
+    points_cam = tracks.points_object_mm @ tracks.rotation.T + tracks.origin_mm
+    with Recording.open(recording) as rec:
+        force = rec.force_at(tracks.times_ns)[:, :3]
+        camera = rec.camera
+    peaks = metrics.force_peaks(np.nan_to_num(force))
+    coverage, nni = [], []
+    with Recording.open(processed) as derived:
+        for peak in peaks:
+            msg = derived.message(layout.TISSUE_MASK, int(peak))
+            mask = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+            uv = camera.project(points_cam[peak])
+            coverage.append(metrics.coverage(uv, mask, tracks.visible[peak]))
+            nni.append(metrics.nearest_neighbour_index(points_cam[peak], points_cam[0], tracks.visible[peak],
+                                                       tracks.visible[0]))
+    result = {"coverage": coverage, "nni": nni, "peaks": [int(p) for p in peaks]}
+    if ground_truth is not None and (ground_truth / "points.npy").is_file():
+        material = np.load(ground_truth / "points.npy", mmap_mode="r")
+        normals = np.load(ground_truth / "normals.npy", mmap_mode="r")
+        frames = min(len(points_cam), len(material))
+        truth, truth_normals = ground_truth_tracks(points_cam[0], material[:frames], normals[:frames])
+        result["error"] = metrics.tracking_error(points_cam[:frames], truth, truth_normals,
+                                                 tracks.visible[:frames]).as_dict()
+    return result
+
+
+def _tracking_table(out: Path, entries: list[Entry], trackers: list[str]) -> tuple[dict, dict]:
+    rows, per_recording = {}, {}
+    tests = [e for e in entries if e.split == "test"]
+    for tracker in trackers:
+        results = []
+        for entry in tests:
+            if entry.processed(tracker).is_file() and entry.mcap.is_file():
+                gt = entry.raw / "ground_truth"
+                results.append(tracking_quality(entry.processed(tracker), entry.mcap, gt if gt.is_dir() else None))
+                per_recording.setdefault(tracker, {})[entry.id] = results[-1]
+        if not results:
+            continue
+        coverage = np.concatenate([r["coverage"] for r in results]) if results else np.zeros(0)
+        nni = np.concatenate([r["nni"] for r in results]) if results else np.zeros(0)
+        row = {"peaks": int(len(coverage)), "coverage_mean": float(np.mean(coverage)) if len(coverage) else np.nan,
+               "coverage_std": float(np.std(coverage)) if len(coverage) else np.nan,
+               "nni_mean": float(np.nanmean(nni)) if len(nni) else np.nan,
+               "nni_std": float(np.nanstd(nni)) if len(nni) else np.nan}
+        errors = [r["error"] for r in results if "error" in r]
+        if errors:
+            # Pooled over recordings by the number of compared pairs (medians are not additive, so
+            # this is a weighted mean of per-recording medians and percentiles; stated in the docs).
+            weights = np.array([e["count"] for e in errors], dtype=np.float64)
+            for key in errors[0]:
+                if key != "count":
+                    row[key] = float(np.average([e[key] for e in errors], weights=weights))
+        rows[tracker] = row
+    return rows, per_recording
+
+
+def _stage_fps(entries: list[Entry], tracker: str) -> dict[str, float]:
+    from vfdata.recording import Recording, layout
+
+    per, frames = [], []
+    for entry in entries:
+        path = entry.processed(tracker)
+        if path.is_file():
+            with Recording.open(path) as rec:
+                meta = rec.metadata_records.get(layout.DERIVED_METADATA, {})
+            if "stage_fps" in meta:
+                per.append(json.loads(meta["stage_fps"]))
+                frames.append(int(meta.get("frames", 1)))
+    return reports.combine_stage_fps(per, frames) if per else {}
+
+
+def _figures(out: Path, entries: list[Entry], trackers: list[str], dataset: str) -> dict[str, Path]:
+    from vfdata.predict import read_tracks
+    from vfdata.recording import Recording
+
+    paths = {}
+    proposed = sorted((out / "runs" / "proposed").glob("seed*/predictions.npz"))
+    if proposed:
+        predictions = dict(np.load(proposed[0], allow_pickle=False))
+        paths["fig7"] = reports.plot_force_curves(predictions, out / "fig7_force_curves.png",
+                                                  title=f"{dataset}: proposed model, test orientations")
+    forces = {"train": [], "test": []}
+    for entry in entries:
+        if entry.split in forces and entry.mcap.is_file():
+            with Recording.open(entry.mcap) as rec:
+                forces[entry.split].append(rec.force_at(rec.frame_times_ns)[:, :3])
+    if forces["train"] and forces["test"]:
+        paths["fig5"] = reports.plot_force_distributions(np.concatenate(forces["train"]),
+                                                         np.concatenate(forces["test"]),
+                                                         out / "fig5_force_kde.png", title=f"{dataset}: force")
+    test = next((e for e in entries if e.split == "test" and e.processed(trackers[0]).is_file()), None)
+    if test is not None:
+        import cv2
+
+        from vfdata import metrics
+        from vfdata.recording import layout
+
+        with Recording.open(test.mcap) as rec:
+            force = rec.force_at(rec.frame_times_ns)[:, :3]
+            peaks = metrics.force_peaks(np.nan_to_num(force))
+            limit = len(read_tracks(test.processed(trackers[0])).times_ns)
+            peaks = peaks[peaks < limit]
+            peak = int(peaks[np.argmax(np.linalg.norm(force[peaks], axis=1))]) if len(peaks) else limit - 1
+            image = rec.rectified_frame(peak).left
+            camera = rec.camera
+        shown = {}
+        mask = None
+        for tracker in trackers:
+            if test.processed(tracker).is_file():
+                tracks = read_tracks(test.processed(tracker))
+                cam = tracks.points_object_mm[peak] @ tracks.rotation.T + tracks.origin_mm
+                shown[tracker] = (camera.project(cam), tracks.visible[peak])
+                if mask is None:
+                    with Recording.open(test.processed(tracker)) as derived:
+                        msg = derived.message(layout.TISSUE_MASK, peak)
+                    mask = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+        paths["fig6"] = reports.plot_tracked_points(image, shown, out / "fig6_tracked_points.png", mask,
+                                                    title=f"{test.id}, frame {peak} (force peak)")
+    return paths
+
+
+def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[str, Path]:
+    """All tables and plots of a results folder (also on a partial grid: what has run is shown)."""
+    out = Path(out)
+    if manifest is None:
+        manifest = json.loads((out / "experiment.json").read_text())["manifest"]
+    data, entries = read_manifest(manifest)
+    dataset = str(data.get("name", Path(manifest).stem))
+    runs = load_runs(out)
+    paths = _force_tables(out, runs, dataset) if runs else {}
+    trackers = [t for t in TRACKER_SUFFIX if any(e.processed(t).is_file() for e in entries)]
+
+    rows, per_recording = _tracking_table(out, entries, trackers)
+    if rows:
+        labels = {"geometry": "Geometry-constrained (proposed)", "klt": "KLT (CoTracker stand-in)",
+                  "geometry+": "Geometry+ (with image flow)", "groundtruth": "Ground truth"}
+        (out / "table3_tracking.md").write_text(reports.tracking_table_markdown(rows, labels))
+        (out / "table3_tracking.csv").write_text(reports.tracking_table_csv(rows))
+        (out / "tracking_per_recording.json").write_text(json.dumps(per_recording, indent=2))
+        paths["table3.md"] = out / "table3_tracking.md"
+
+    stage_fps = _stage_fps(entries, "geometry")
+    runs_of_proposed = (out / "runs" / "proposed").glob("seed*/metrics.json")
+    force_fps = [f for f in (json.loads(p.read_text()).get("force_fps") for p in runs_of_proposed) if f]
+    if force_fps:
+        stage_fps["force"] = float(np.mean(force_fps))
+    if stage_fps:
+        (out / "timing.md").write_text(reports.timing_table_markdown(stage_fps))
+        (out / "timing.json").write_text(json.dumps(stage_fps, indent=2))
+        paths["timing.md"] = out / "timing.md"
+    paths.update(_figures(out, entries, trackers or ["geometry"], dataset))
+    return paths
+
+
+def summary_text(out: Path, paths: dict[str, Path]) -> str:
+    """What the command prints at the end: Table I (or II) and where everything is."""
+    lines = []
+    for key in ("table1.md", "table2.md"):
+        if key in paths:
+            lines.append(paths[key].read_text())
+    if "claims" in paths:
+        for claim in json.loads(paths["claims"].read_text()).values():
+            lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")
+    lines.append("")
+    for key, path in sorted(paths.items()):
+        lines.append(f"{key:>10}: {path}")
+    return "\n".join(lines)
+
+
+__all__ = ["VARIANTS", "ExperimentOptions", "Variant", "read_manifest", "run_experiment", "write_reports"]
