@@ -16,6 +16,9 @@ COMMANDS = [
     "check",
     "inspect-bag",
     "synth",
+    "experiment",
+    "predict",
+    "quickstart",
 ]
 
 
