@@ -437,3 +437,15 @@ def test_inspect_bag(tmp_path, capsys):
     assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "/netft_data " in out and "cannot convert: no image topic found" in out
+
+
+def test_cli_convert_bag(tmp_path, capsys):
+    spec = write_bag(tmp_path / "cli", BagSpec(ros2=True, storage=StoragePlugin.MCAP, pose_type="TransformStamped",
+                                               frames=4))
+    out = tmp_path / "cli.mcap"
+    assert main(["convert", str(tmp_path / "cli"), str(out), "--format", "png", "--quiet"]) == 0
+    check_recording(out, spec)
+    assert main(["convert", str(tmp_path / "cli"), str(out), "--quiet", "--overwrite", "--force-topic", "/nope"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"vfdata convert: error: {tmp_path / 'cli'}: --force-topic /nope: no such topic in the bag"
+    assert check_file(out) == []  # the earlier output is untouched
