@@ -298,6 +298,15 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     return summary
 
 
+def run_folder(out: Path, variant: Variant, seed: int) -> Path:
+    return out / "runs" / variant.name / f"seed{seed}"
+
+
+def pending_runs(out: Path, grid: list[tuple[Variant, int]]) -> list[tuple[Variant, int]]:
+    """The runs of the grid without a metrics.json (written last by a finished run)."""
+    return [(v, s) for v, s in grid if not (run_folder(out, v, s) / "metrics.json").is_file()]
+
+
 @dataclass
 class ExperimentResult:
     out: Path
@@ -324,14 +333,17 @@ def run_experiment(manifest: str | Path, out: str | Path, options: ExperimentOpt
     }, indent=2))
 
     grid = [(v, s) for v in variants for s in range(options.seeds)]
+    todo = pending_runs(out, grid)
     runs: dict[str, list[Path]] = {v.name: [] for v in variants}
     started = time.perf_counter()
-    bar = tqdm(grid, desc="experiment", unit="run", disable=not options.progress)
-    for variant, seed in bar:
-        run_dir = out / "runs" / variant.name / f"seed{seed}"
-        bar.set_postfix_str(f"{variant.name} seed {seed}")
-        if not (run_dir / "metrics.json").is_file():
+    bar = tqdm(total=len(grid), initial=len(grid) - len(todo), desc="experiment", unit="run",
+               disable=not options.progress)
+    for variant, seed in grid:
+        run_dir = run_folder(out, variant, seed)
+        if (variant, seed) in todo:
+            bar.set_postfix_str(f"{variant.name} seed {seed}")
             run_one(variant, seed, manifests[variant.tracker], run_dir, options)
+            bar.update()
         runs[variant.name].append(run_dir)
     bar.close()
     seconds["train_test"] = time.perf_counter() - started

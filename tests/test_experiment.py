@@ -1,0 +1,149 @@
+"""The experiment runner: manifests, per-tracker manifests, clip de-duplication, resumption, claims,
+and the report step on run folders with known predictions."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from vfdata import experiment, reports
+from vfdata.errors import InputError, VisionForceError
+
+
+def write_manifest(folder, recordings=None):
+    recordings = recordings or [
+        {"id": "a", "orientation_deg": 0, "split": "train"},
+        {"id": "b", "orientation_deg": 0, "split": "val"},
+        {"id": "c", "orientation_deg": 90, "split": "test", "mcap": "elsewhere/c.mcap"},
+    ]
+    path = folder / "datasets" / "toy.manifest.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump({"name": "toy", "root": "../data", "recordings": recordings}))
+    return path
+
+
+def test_read_manifest_resolves_paths_relative_to_the_manifest(tmp_path):
+    data, entries = experiment.read_manifest(write_manifest(tmp_path))
+    assert data["name"] == "toy" and [e.id for e in entries] == ["a", "b", "c"]
+    assert entries[0].raw == (tmp_path / "data" / "a").resolve()
+    assert entries[0].mcap == (tmp_path / "data" / "a.mcap").resolve()
+    assert entries[2].mcap == (tmp_path / "data" / "elsewhere" / "c.mcap").resolve()
+    assert entries[0].processed("geometry").name == "a.processed.mcap"
+    assert entries[0].processed("klt").name == "a.klt.mcap"
+    assert entries[2].orientation_deg == 90.0
+
+
+@pytest.mark.parametrize("content, problem", [
+    ("recordings: []", "non-empty"),
+    ("recordings: [{id: a, split: holdout}]", "split"),
+    ("recordings: [: bad", "YAML"),
+])
+def test_bad_manifests_are_clear_errors(tmp_path, content, problem):
+    path = tmp_path / "m.yaml"
+    path.write_text(content)
+    with pytest.raises(InputError, match=problem):
+        experiment.read_manifest(path)
+    with pytest.raises(InputError, match="not found"):
+        experiment.read_manifest(tmp_path / "missing.yaml")
+
+
+def test_tracker_manifest_points_at_the_tracker_files(tmp_path):
+    data, entries = experiment.read_manifest(write_manifest(tmp_path))
+    path = experiment.tracker_manifest(data, entries, "klt", tmp_path / "out" / "klt.manifest.yaml")
+    copy = yaml.safe_load(path.read_text())
+    assert copy["name"] == "toy-klt"
+    assert [r["processed"] for r in copy["recordings"]] == [str(e.processed("klt")) for e in entries]
+    assert [r["split"] for r in copy["recordings"]] == ["train", "val", "test"]
+    # Re-read through the same reader: absolute paths survive the move.
+    _, again = experiment.read_manifest(path)
+    assert [e.mcap for e in again] == [e.mcap for e in entries]
+
+
+def test_missing_recording_names_the_fix(tmp_path):
+    _, entries = experiment.read_manifest(write_manifest(tmp_path))
+    with pytest.raises(InputError, match="vfdata synth"):
+        experiment.prepare(entries, ["geometry"], experiment.ExperimentOptions(progress=False))
+
+
+def test_unknown_variant_is_an_error():
+    with pytest.raises(VisionForceError, match="unknown variant"):
+        experiment.ExperimentOptions(variants=["proposed", "nope"]).chosen()
+    assert [v.name for v in experiment.ExperimentOptions().chosen()] == list(experiment.VARIANTS)
+    assert {v.tracker for v in experiment.VARIANTS.values()} == {"geometry", "klt"}
+
+
+def test_clip_frames_keeps_each_frame_once_from_its_latest_clip_position():
+    # Two clips of 4 frames with stride 2 on one recording: frames 2 and 3 appear twice.
+    times = np.array([0, 1, 2, 3, 2, 3, 4, 5])
+    parts = [dict(recording=np.array(["r"] * 8, dtype=object), orientation_deg=np.full(8, 90.0),
+                  frame_time_ns=times, position=np.array([0, 1, 2, 3, 0, 1, 2, 3]),
+                  pred=np.arange(8, dtype=float)[:, None].repeat(3, 1), true=np.zeros((8, 3)))]
+    frames = experiment.clip_frames(parts)
+    np.testing.assert_array_equal(frames["frame_time_ns"], [0, 1, 2, 3, 4, 5])
+    # Frames 2 and 3 come from the first clip (positions 2, 3 > 0, 1).
+    np.testing.assert_array_equal(frames["pred"][:, 0], [0, 1, 2, 3, 6, 7])
+    assert frames["recording"].dtype.kind == "U" and "position" not in frames
+
+
+def _fake_predictions(noise: float, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    t = np.arange(120)
+    true = np.stack([np.sin(t / 9), np.cos(t / 13), 0.3 * t / 120], axis=1)
+    true = np.concatenate([true, true * 1.5])
+    return dict(recording=np.array(["c"] * 120 + ["d"] * 120), orientation_deg=np.array([90.0] * 120 + [180.0] * 120),
+                frame_time_ns=np.concatenate([t, t]).astype(np.int64) * 33_333_333,
+                pred=true + noise * rng.standard_normal(true.shape), true=true)
+
+
+def _fake_runs(out, noise_by_variant: dict[str, float], seeds: int = 2):
+    for variant, noise in noise_by_variant.items():
+        for seed in range(seeds):
+            run = out / "runs" / variant / f"seed{seed}"
+            run.mkdir(parents=True)
+            predictions = _fake_predictions(noise, seed)
+            np.savez_compressed(run / "predictions.npz", **predictions)
+            (run / "metrics.json").write_text(json.dumps({"force_fps": 5000.0}))
+
+
+def test_pending_runs_skips_finished_ones(tmp_path):
+    _fake_runs(tmp_path, {"proposed": 0.1}, seeds=2)
+    grid = [(experiment.VARIANTS[n], s) for n in ("proposed", "klt") for s in range(3)]
+    pending = experiment.pending_runs(tmp_path, grid)
+    assert [(v.name, s) for v, s in pending] == [("proposed", 2), ("klt", 0), ("klt", 1), ("klt", 2)]
+    # A run folder without metrics.json (interrupted) is still pending.
+    (tmp_path / "runs" / "proposed" / "seed1" / "metrics.json").unlink()
+    assert ("proposed", 1) in [(v.name, s) for v, s in experiment.pending_runs(tmp_path, grid)]
+
+
+def test_reports_from_run_folders(tmp_path):
+    manifest = write_manifest(tmp_path)
+    out = tmp_path / "results"
+    _fake_runs(out, {"proposed": 0.05, "camera_frame": 0.2, "klt": 0.08, "rgb": 0.3})
+    paths = experiment.write_reports(out, manifest)
+    table1 = paths["table1.md"].read_text()
+    table2 = paths["table2.md"].read_text()
+    assert "Proposed" in table1 and "RGB only" in table1 and "Camera frame" not in table1
+    assert "Camera frame" in table2 and "KLT" in table2 and "RGB" not in table2
+    runs = experiment.load_runs(out)
+    expected = reports.aggregate_seeds(runs["proposed"])["value"]["rmse"]
+    assert f"{expected:.3f}" in table1
+    for key in ("table1.csv", "table1.tex", "table2.csv", "table2.tex", "fig7"):
+        assert paths[key].is_file() and paths[key].stat().st_size > 0
+    claims = json.loads(paths["claims"].read_text())
+    assert claims["object_frame_halves_rmse"]["holds"] is True  # 0.05 vs 0.2 noise
+    assert claims["geometry_beats_klt"]["holds"] is True and claims["beats_rgb"]["holds"] is True
+    assert "beats_position_only" not in claims
+    text = experiment.summary_text(out, paths)
+    assert "Table I" in text and "fig7" in text and "object frame lowers the average RMSE" in text
+
+
+def test_claims_flag_a_failed_claim():
+    agg = {name: {"value": {"rmse": rmse}} for name, rmse in
+           (("proposed", 0.8), ("camera_frame", 1.0), ("velocity_only", 0.7))}
+    result = experiment.claims(agg)
+    assert result["object_frame_halves_rmse"]["holds"] is False
+    assert result["object_frame_halves_rmse"]["reduction"] == pytest.approx(0.2)
+    assert result["beats_velocity_only"]["holds"] is False
