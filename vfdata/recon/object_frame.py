@@ -120,12 +120,18 @@ def estimate_object_frame(
     chunk, within = divmod(best, _CHUNK)
     axis = fits[chunk].direction[within]
     score = float(scores[best])
+    # Refinement along the found axis, with circles: slabs perpendicular to the true centreline
+    # of a round tube are circles, and a circle's centre is well defined from the partial arc the
+    # camera sees, where a free ellipse can slide along the arc (biased by the changing viewpoint
+    # along the tissue).
     for _ in range(refine):
-        fit = _slice_and_fit(local, axis[None, :])
+        fit = _slice_and_fit(local, axis[None, :], circles=True)
         if not np.isfinite(fit.score[0]):
             break
-        axis, score = fit.direction[0], float(fit.score[0])
-    final = _slice_and_fit(local, axis[None, :])
+        axis = fit.direction[0]
+    final = _slice_and_fit(local, axis[None, :], circles=refine > 0)
+    if np.isfinite(final.score[0]):
+        score = float(final.score[0])
 
     # +Z toward the narrower end: the ellipse size decreases along +Z.
     t, size = final.slab_t[0], final.slab_size[0]
@@ -210,7 +216,7 @@ def _basis(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(c, e1)
 
 
-def _slice_and_fit(points: np.ndarray, c: np.ndarray) -> _Fit:
+def _slice_and_fit(points: np.ndarray, c: np.ndarray, circles: bool = False) -> _Fit:
     """Slice the (N, 3) centred cloud perpendicular to each candidate c (C, 3), fit an ellipse per
     slab (Halir & Flusser's direct least-squares fit on normalised slab coordinates), and fit the
     centreline through the ellipse centres."""
@@ -258,8 +264,11 @@ def _slice_and_fit(points: np.ndarray, c: np.ndarray) -> _Fit:
     mu_t = slab_sum(t) / safe
     mu_x, mu_y = m[..., 12] / safe, m[..., 13] / safe
     spread = np.sqrt(np.maximum(m[..., 9] / safe - mu_x**2 + m[..., 11] / safe - mu_y**2, 0))
-    conic = _direct_ellipse_fit(m)  # (C, K, 6) conic a x^2 + b xy + c y^2 + d x + e y + f
-    centre_xy, axes = _ellipse_geometry(conic)
+    if circles:
+        centre_xy, axes = _circle_fit(m)
+    else:
+        conic = _direct_ellipse_fit(m)  # (C, K, 6) conic a x^2 + b xy + c y^2 + d x + e y + f
+        centre_xy, axes = _ellipse_geometry(conic)
     cx, cy = centre_xy[..., 0], centre_xy[..., 1]
     size = unit * np.sqrt(axes[..., 0] * axes[..., 1])
     # A usable slab: enough points and a real ellipse of plausible size near its points (a slab that
@@ -293,6 +302,24 @@ def _slice_and_fit(points: np.ndarray, c: np.ndarray) -> _Fit:
         slab_t=t_good,
         slab_size=np.where(good, size, np.nan),
     )
+
+
+def _circle_fit(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched algebraic (Kasa) circle fit from monomial sums m (..., 15) -> centre (..., 2) and
+    radius twice (..., 2). Minimises sum (x^2 + y^2 + D x + E y + F)^2: a 3x3 linear system."""
+    x3, xy2, x2y, y3 = m[..., 5], m[..., 7], m[..., 6], m[..., 8]
+    x2, xy, y2, x1, y1, one = m[..., 9], m[..., 10], m[..., 11], m[..., 12], m[..., 13], m[..., 14]
+    a = np.stack(
+        [np.stack([x2, xy, x1], -1), np.stack([xy, y2, y1], -1), np.stack([x1, y1, one], -1)], axis=-2
+    )
+    rhs = -np.stack([x3 + xy2, x2y + y3, x2 + y2], axis=-1)
+    a = a + np.eye(3) * 1e-12
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sol = np.linalg.solve(a, rhs[..., None])[..., 0]
+        centre = -sol[..., :2] / 2
+        radius = np.sqrt(np.maximum((centre**2).sum(axis=-1) - sol[..., 2], 0))
+    radius[~(radius > 0)] = np.nan
+    return centre, np.stack([radius, radius], axis=-1)
 
 
 def _direct_ellipse_fit(m: np.ndarray) -> np.ndarray:

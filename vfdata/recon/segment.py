@@ -178,11 +178,14 @@ class ColorTrackSettings:
     model_update: float = 0.2  # how fast the colour model follows the video (0: frozen) ...
     model_every: int = 4  # ... updated every this many frames
     mask_threshold: float = 0.35  # of the upsampled soft mask: tissue edges are dark and shaded, so
-    # the working-resolution mask sits slightly inside the true edge; a low threshold evens that out
+    # the working-resolution mask sits slightly inside the true edge; a low threshold and ...
+    edge_dilate_px: int = 1  # ... a dilation of the full-resolution mask even that out
     prior_inside: float = 2.0  # log-odds bonus deep inside the carried-over mask
     prior_slope: float = 0.5  # log-odds per working pixel of distance from the carried-over mask edge
     max_growth_px: int = 12  # the mask may grow at most this far (working px) per frame
-    depth_tolerance_mm: float = 6.0  # depth cue: pixels this far off the tissue's depth are not tissue
+    depth_tolerance_mm: float = 6.0  # depth cue: slack on the tissue's depth range ...
+    depth_jump: float = 0.04  # ... a depth step over this fraction of the tissue depth per working pixel
+    depth_penalty: float = 6.0  # ... is an edge; both get this log-odds penalty
     min_hole_px: int = 400  # holes in the mask smaller than this (full-res px) are filled
     grey_chroma: float = 7.0  # Lab chroma below which a (non-highlight) pixel is taken as metal ...
     grey_penalty: float = 4.0  # ... and gets this log-odds penalty (0: off); tissue is never grey
@@ -270,7 +273,11 @@ class ColorTrackSegmenter(Segmenter):
     def _to_full(self, mask_small: np.ndarray) -> np.ndarray:
         w, h = self._full_size
         up = cv2.resize(mask_small.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-        return up > self.settings.mask_threshold
+        mask = up > self.settings.mask_threshold
+        if self.settings.edge_dilate_px > 0:
+            k = 2 * self.settings.edge_dilate_px + 1
+            mask = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        return mask
 
     # -- the two steps
 
@@ -422,25 +429,32 @@ class ColorTrackSegmenter(Segmenter):
         return (score > 0) & (dist_out <= s.max_growth_px)
 
     def _depth_evidence(self, depth: np.ndarray, carried: np.ndarray) -> np.ndarray:
-        """Log-odds from depth: the tissue's depth surface (this frame's depth inside the carried
-        mask, smoothly extended outward) against this frame's depth; far off it is not tissue."""
-        valid = (carried & (depth > 0)).astype(np.float32)
-        if valid.sum() < 20:
-            return np.zeros_like(depth)
-        # Normalised convolution on a 4x coarser grid (cheap; the surface is smooth).
-        h, w = depth.shape
-        coarse = (max(1, w // 4), max(1, h // 4))
-        num = cv2.resize(depth * valid, coarse, interpolation=cv2.INTER_AREA)
-        den = cv2.resize(valid, coarse, interpolation=cv2.INTER_AREA)
-        num = cv2.GaussianBlur(num, (0, 0), 1.5)
-        den = cv2.GaussianBlur(den, (0, 0), 1.5)
-        surface = cv2.resize(num / np.maximum(den, 1e-6), (w, h), interpolation=cv2.INTER_LINEAR)
-        # Where the blur does not reach, no depth evidence.
-        reach = cv2.resize(den, (w, h), interpolation=cv2.INTER_LINEAR) > 1e-3
-        off = np.abs(depth - surface)
-        tol = self.settings.depth_tolerance_mm
-        evidence = np.where(reach & (depth > 0), np.clip((tol - off) / tol, -3.0, 0.5), 0.0)
-        return evidence.astype(np.float32)
+        """Log-odds from depth. The tissue's outline is a depth discontinuity (the tissue stands
+        off the bed; the instrument is in front of it): pixels on a depth jump are barriers the
+        mask cannot cross, so tissue-coloured surroundings cannot leak in. Pixels far off the
+        tissue's depth range (median +- a robust spread of the carried mask's depth) are not tissue."""
+        s = self.settings
+        valid = depth > 0
+        filled = np.where(valid, depth, np.float32(0)).astype(np.float32)
+        kernel = np.ones((3, 3), np.uint8)
+        # The far side of a depth step (a pixel well behind its nearest neighbour): the bed just
+        # outside the tissue's silhouette. The near side, the tissue's own edge, stays eligible.
+        jump = filled - cv2.erode(np.where(valid, filled, np.float32(1e6)), kernel)
+        # The jump threshold grows with depth (disparity noise makes depth noise grow with depth^2;
+        # a relative threshold is a fair compromise on the working range).
+        evidence = np.zeros_like(filled)
+        inside = carried & valid
+        if inside.sum() < 20:
+            return evidence
+        tissue = filled[inside]
+        median = float(np.median(tissue))
+        spread = float(np.percentile(np.abs(tissue - median), 90)) + s.depth_tolerance_mm
+        # Only growth is policed: inside the carried mask colour and the prior decide (depth noise
+        # at the tissue's own silhouette would otherwise eat its edge).
+        outside = valid & ~carried
+        evidence[outside & (jump > s.depth_jump * median)] = -s.depth_penalty
+        evidence[outside & (np.abs(filled - median) > 2 * spread)] = -s.depth_penalty
+        return evidence
 
     def _clean(self, mask: np.ndarray, seed: np.ndarray | None, prompt_mask: np.ndarray | None) -> np.ndarray:
         """Open/close, keep the component(s) continuing the previous mask (or the prompt), fill small
