@@ -82,6 +82,9 @@ class TubeModel:
         self.clamped = np.arange(tube.n_around)  # ring 0
         self.gravity_n = -self.mass[:, None] * GRAVITY_M_S2 * UP[None, :]
         self.sensor_origin = np.array([0.0, 0.0, -self.sensor_offset_mm])
+        is_clamped = np.zeros(self.n, bool)
+        is_clamped[self.clamped] = True
+        self._clamp_springs = np.nonzero(is_clamped[self.i] | is_clamped[self.j])[0]
         self._grasped = np.zeros(0, dtype=np.int64)
         self._targets = np.zeros((0, 3))
         self._build_band_index()
@@ -114,20 +117,23 @@ class TubeModel:
         self._sign = np.concatenate(sign)
         self._flat = (self.bandwidth + self._rows - self._cols) * ndof + self._cols
 
-    def _spring_terms(self, x: np.ndarray, v: np.ndarray) -> dict[str, np.ndarray]:
-        """Directions, strains and tensions of every spring at positions x, velocities v."""
-        dx = x[self.j] - x[self.i]
-        length = np.linalg.norm(dx, axis=1)
+    def _spring_terms(self, x: np.ndarray, v: np.ndarray, sel: np.ndarray | slice = slice(None)
+                      ) -> dict[str, np.ndarray]:
+        """Directions, strains and tensions of the springs `sel` at positions x, velocities v."""
+        i, j, rest = self.i[sel], self.j[sel], self.rest_length[sel]
+        k, k_m = self.k[sel], self.k_m[sel]
+        dx = x[j] - x[i]
+        length = np.sqrt(np.einsum("sx,sx->s", dx, dx))
         d = dx / np.maximum(length, 1e-9)[:, None]
-        e = (length - self.rest_length) / self.rest_length
-        e_dot = np.einsum("sx,sx->s", d, v[self.j] - v[self.i]) / self.rest_length
+        e = (length - rest) / rest
+        e_dot = np.einsum("sx,sx->s", d, v[j] - v[i]) / rest
         mat = self.material
         tension_side = e >= 0
-        t_el = np.where(tension_side, self.k * (e + mat.stiffening * e**3), self.k * mat.compression_ratio * e)
-        kt_el = np.where(tension_side, self.k * (1 + 3 * mat.stiffening * e**2), self.k * mat.compression_ratio)
-        t_m = self.k_m * (e - self.q)
-        return {"d": d, "length": length, "e": e, "t_static": t_el + t_m, "kt": kt_el + self.k_m,
-                "t_visc": self.c * e_dot}
+        t_el = np.where(tension_side, k * (e + mat.stiffening * e**3), k * mat.compression_ratio * e)
+        kt_el = np.where(tension_side, k * (1 + 3 * mat.stiffening * e**2), k * mat.compression_ratio)
+        t_m = k_m * (e - self.q[sel])
+        return {"d": d, "length": length, "e": e, "t_static": t_el + t_m, "kt": kt_el + k_m,
+                "t_visc": self.c[sel] * e_dot}
 
     def _node_forces(self, tension: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Spring tensions -> (n, 3) forces on the nodes (a tense spring pulls its ends together)."""
@@ -255,7 +261,13 @@ class TubeModel:
     def sensor_wrench(self) -> Wrench:
         """What the tissue exerts on the clamp, in the sensor frame: force (N) and torque (N m) about
         the sensor origin. Includes the tissue's weight (the sensor is not tared here)."""
-        load = self.spring_node_forces()[self.clamped] + self.gravity_n[self.clamped]
+        sel = self._clamp_springs
+        terms = self._spring_terms(self.x, self.v, sel)
+        f = (terms["t_static"] + terms["t_visc"])[:, None] * terms["d"]
+        on_node = np.zeros((self.n, 3))
+        np.add.at(on_node, self.i[sel], f)
+        np.add.at(on_node, self.j[sel], -f)
+        load = on_node[self.clamped] + self.gravity_n[self.clamped]
         arm_m = (self.x[self.clamped] - self.sensor_origin) * 1e-3
         return Wrench(load.sum(0), np.cross(arm_m, load).sum(0))
 

@@ -66,7 +66,7 @@ GLOVE = TissueKind(
     grasp_fraction=(0.74, 0.82),
     reach_lo=(-0.15, -0.5, -0.05),
     reach_hi=(0.45, 0.5, 0.15),
-    camera_distance_mm=(78.0, 92.0),
+    camera_distance_mm=(84.0, 96.0),
     palette=Palette(light=(0.80, 0.58, 0.46), dark=(0.66, 0.40, 0.32), vessel=(0.42, 0.07, 0.09),
                     blotch=(0.75, 0.36, 0.34), vessel_count=5, gloss=0.55, shininess=70.0, grain=0.22),
     dense_s=44,
@@ -91,17 +91,17 @@ COLON = TissueKind(
     maxwell_tau_s=(1.0, 3.0),
     kind_factors=(1.0, 1.0, 0.5, 3.0, 0.5, 2.5),
     grasp_fraction=(0.72, 0.82),
-    reach_lo=(-0.1, -0.5, -0.03),
-    reach_hi=(0.5, 0.5, 0.11),
-    camera_distance_mm=(120.0, 140.0),
+    reach_lo=(-0.1, -0.45, -0.03),
+    reach_hi=(0.42, 0.45, 0.11),
+    camera_distance_mm=(132.0, 145.0),
     palette=Palette(light=(0.74, 0.36, 0.34), dark=(0.46, 0.10, 0.12), vessel=(0.30, 0.02, 0.05),
                     blotch=(0.78, 0.52, 0.42), vessel_count=14, gloss=0.8, shininess=80.0, grain=0.16),
     dense_s=56,
     dense_theta=44,
 )
 
-BED_PALETTE = Palette(light=(0.86, 0.58, 0.54), dark=(0.44, 0.06, 0.08), vessel=(0.32, 0.02, 0.04),
-                      blotch=(0.95, 0.82, 0.58), vessel_count=14, gloss=0.6, shininess=45.0, grain=0.12)
+BED_PALETTE = Palette(light=(0.84, 0.55, 0.52), dark=(0.36, 0.035, 0.05), vessel=(0.30, 0.015, 0.03),
+                      blotch=(0.95, 0.80, 0.62), vessel_count=16, gloss=1.2, shininess=30.0, grain=0.12)
 
 
 @dataclass(frozen=True)

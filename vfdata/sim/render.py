@@ -381,11 +381,11 @@ def _tone_curve(x: np.ndarray) -> np.ndarray:
     return 255.0 * np.power(np.clip(y * 1.25, 0, 1), 1 / 2.2)
 
 
-_TONE_LUT = _tone_curve(np.linspace(0, _TONE_MAX, _TONE_BINS)).astype(np.float32)
+_TONE_LUT = np.round(_tone_curve(np.linspace(0, _TONE_MAX, _TONE_BINS))).astype(np.uint8)
 
 
 def tone_map(linear: np.ndarray) -> np.ndarray:
-    """Linear radiance -> display value 0..255 (soft shoulder, then sRGB-like gamma), by table."""
+    """Linear radiance -> display value uint8 (soft shoulder, then sRGB-like gamma), by table."""
     idx = np.clip(linear * np.float32((_TONE_BINS - 1) / _TONE_MAX), 0, _TONE_BINS - 1).astype(np.int32)
     return _TONE_LUT[idx]
 
@@ -453,9 +453,8 @@ class NoisePool:
         return f[y:y + self.h, x:x + self.w]
 
 
-def finish(display: np.ndarray, noise: np.ndarray, blur_sigma: float) -> np.ndarray:
-    """Display-space float image -> uint8 with optical blur and sensor noise."""
-    img = np.clip(display, 0, 255).astype(np.uint8)
+def finish(img: np.ndarray, noise: np.ndarray, blur_sigma: float) -> np.ndarray:
+    """Display image (uint8) with optical blur and sensor noise."""
     if blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
     return cv2.add(img, noise, dtype=cv2.CV_8U)

@@ -106,7 +106,7 @@ class StereoFrame:
 
 @dataclass
 class _StaticView:
-    color: np.ndarray        # (H*W, 3) float32 display values, vignetted
+    color: np.ndarray        # (H*W, 3) uint8 display values
     depth: np.ndarray        # (H*W,) float32 mm, 0 where nothing
     vignette: np.ndarray     # (H*W,) float32
 
@@ -187,7 +187,7 @@ class SceneRenderer:
         light = self._light(view)
         hw = cam.height * cam.width
         depth = np.full(hw, np.inf)
-        color = np.zeros((hw, 3), np.float32)
+        color = np.zeros((hw, 3), np.uint8)
         vig = vignette(cam).ravel()
         bed_frag = rasterize(cam, bed, cull_backfaces=False)
         fix_frag = rasterize(cam, fixture)
@@ -197,22 +197,22 @@ class SceneRenderer:
         bed_frag = bed_frag.subset(depth[bed_frag.flat] == bed_frag.depth).interpolate()
         albedo, extra = self.bed_texture.sample(bed_frag.attrs[0], bed_frag.attrs[1])
         tangent = np.tile(self.r_co[:, 2:3].astype(np.float32), (1, len(bed_frag.flat)))
-        normal = bumped_normals(bed_frag.normal, tangent, extra[1], extra[2], spec.bump_strength)
+        normal = bumped_normals(bed_frag.normal, tangent, extra[1], extra[2], 3.0 * spec.bump_strength)
         rad = shade(bed_frag.position(cam), normal, albedo, extra[0], spec.bed_palette.shininess, light)
-        color[bed_frag.flat] = (tone_map(rad) * vig[bed_frag.flat]).T
-        color[fix_frag.flat] = (self._shade_materials(fix_frag, cam, light) * vig[fix_frag.flat]).T
+        color[bed_frag.flat] = tone_map(rad * vig[bed_frag.flat]).T
+        color[fix_frag.flat] = self._shade_materials(fix_frag, cam, light, vig[fix_frag.flat]).T
         depth[~np.isfinite(depth)] = 0.0
         return _StaticView(color, depth.astype(np.float32), vig)
 
     @staticmethod
-    def _shade_materials(frag: Fragments, cam: PinholeCamera, light: Light) -> np.ndarray:
+    def _shade_materials(frag: Fragments, cam: PinholeCamera, light: Light, vignetting: np.ndarray) -> np.ndarray:
         """(3, P) display values of instrument / fixture fragments by material id."""
         mat = np.rint(frag.attrs[0]).astype(int)
         albedo = np.array([MATERIALS[m][0] for m in range(4)], np.float32)[mat].T
         gloss = np.array([MATERIALS[m][1] for m in range(4)], np.float32)[mat]
         shin = np.array([MATERIALS[m][2] for m in range(4)], np.float32)[mat]
         return tone_map(shade(frag.position(cam), frag.normal, albedo, gloss, shin, light, wrap=0.0,
-                              ambient=0.03))
+                              ambient=0.03) * vignetting)
 
     # --- dynamic objects -----------------------------------------------------------------------------
 
@@ -289,8 +289,8 @@ class SceneRenderer:
             albedo, extra = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
             normal = bumped_normals(t_frag.normal, t_frag.attrs[2:5], extra[1], extra[2], spec.bump_strength)
             rad = shade(t_frag.position(cam), normal, albedo, extra[0], spec.tube_palette.shininess, light)
-            color[t_frag.flat] = (tone_map(rad) * static.vignette[t_frag.flat]).T
-            color[i_frag.flat] = (self._shade_materials(i_frag, cam, light) * static.vignette[i_frag.flat]).T
+            color[t_frag.flat] = tone_map(rad * static.vignette[t_frag.flat]).T
+            color[i_frag.flat] = self._shade_materials(i_frag, cam, light, static.vignette[i_frag.flat]).T
             img = finish(color.reshape(cam.height, cam.width, 3), self.noise.draw(self.rng), spec.blur_sigma)
             images.append(img)
             if view == 0:

@@ -104,11 +104,13 @@ def build_recording(plan: RecordingPlan, seed: int, frames: int | None = None, w
     rotation_wo = object_rotation(plan.orientation_deg)
     origin_w = np.array([0.0, 0.0, CLAMP_HEIGHT_MM])
     z_axis = rotation_wo[:, 2]
-    target = origin_w + z_axis * length * rng.uniform(0.5, 0.6)
+    # Aim at the middle of the grasper's working volume: along the tube and a little above it.
+    reach_mid = 0.5 * (np.array(kind.reach_lo) + np.array(kind.reach_hi)) * length
+    target = origin_w + z_axis * length * rng.uniform(0.5, 0.6) + np.array([0, 0, 0.8 * reach_mid[0]])
     target = target + rng.normal(0, 9.0 if test else 4.0, 3) * np.array([1, 1, 0.3])
     azimuth = np.radians(-90.0 + rng.uniform(-10, 10) + (rng.uniform(-35, 35) if test else 0.0))
     elevation = np.radians(rng.uniform(38, 62) if test else rng.uniform(45, 55))
-    distance = u(kind.camera_distance_mm) * (rng.uniform(0.9, 1.15) if test else 1.0)
+    distance = min(150.0, u(kind.camera_distance_mm) * (rng.uniform(0.9, 1.1) if test else 1.0))
     eye = target + distance * np.array([np.cos(elevation) * np.cos(azimuth),
                                         np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
     rotation_wc = look_at(eye, target, roll_rad=np.radians(rng.uniform(-8, 8)))
