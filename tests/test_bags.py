@@ -57,6 +57,7 @@ class BagSpec:
     force_shift_ns: int = 0
     zero_stamps: bool = False  # image headers left at 0
     with_images: bool = True
+    lz4: bool = False  # ROS 1 chunk compression
     # filled in
     images: list = field(default_factory=list)
     frame_ns: np.ndarray | None = None
@@ -168,6 +169,8 @@ def write_bag(path: Path, spec: BagSpec) -> BagSpec:
         serialize = ts.serialize_cdr
     else:
         writer = Writer1(path)
+        if spec.lz4:
+            writer.set_compression(Writer1.CompressionFormat.LZ4)
         serialize = ts.serialize_ros1
     with writer:
         connections = {}
@@ -223,14 +226,14 @@ def check_recording(out: Path, spec: BagSpec) -> Recording:
     return rec
 
 
-@pytest.mark.parametrize("ros2, storage, pose_type", [
-    (False, None, "PoseStamped"),
-    (False, None, "TransformStamped"),
-    (True, StoragePlugin.SQLITE3, "TransformStamped"),
-    (True, StoragePlugin.MCAP, "PoseStamped"),
+@pytest.mark.parametrize("ros2, storage, pose_type, lz4", [
+    (False, None, "PoseStamped", False),
+    (False, None, "TransformStamped", True),
+    (True, StoragePlugin.SQLITE3, "TransformStamped", False),
+    (True, StoragePlugin.MCAP, "PoseStamped", False),
 ])
-def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type):
-    spec = BagSpec(ros2=ros2, storage=storage or StoragePlugin.SQLITE3, pose_type=pose_type)
+def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type, lz4):
+    spec = BagSpec(ros2=ros2, storage=storage or StoragePlugin.SQLITE3, pose_type=pose_type, lz4=lz4)
     bag = tmp_path / ("rec" if ros2 else "rec.bag")
     write_bag(bag, spec)
     before = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*"))
@@ -449,3 +452,8 @@ def test_cli_convert_bag(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err == f"vfdata convert: error: {tmp_path / 'cli'}: --force-topic /nope: no such topic in the bag"
     assert check_file(out) == []  # the earlier output is untouched
+    # one storage file of a ROS 2 bag, given alone
+    storage_file = next((tmp_path / "cli").glob("*.mcap"))
+    assert bags.is_bag(storage_file)
+    assert main(["convert", str(storage_file), str(tmp_path / "file.mcap"), "--format", "png", "--quiet"]) == 0
+    check_recording(tmp_path / "file.mcap", spec)
