@@ -14,6 +14,7 @@ COMMANDS = [
     "convert",
     "info",
     "check",
+    "process",
     "inspect-bag",
     "synth",
     "experiment",

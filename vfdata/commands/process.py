@@ -1,0 +1,60 @@
+"""`vfdata process IN.mcap [OUT.mcap]`: depth, tissue mask, clouds, object frame and tracks."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from vfdata.errors import VisionForceError
+from vfdata.processing import TRACKERS, ProcessOptions, default_output, process_recording
+
+
+def _options(text: str | None) -> dict:
+    """`key=value,key=value` (values parsed as JSON when they can be: numbers, true/false)."""
+    result = {}
+    for item in filter(None, (text or "").split(",")):
+        if "=" not in item:
+            raise VisionForceError(f"option '{item}' is not key=value")
+        key, value = item.split("=", 1)
+        try:
+            result[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            result[key.strip()] = value
+    return result
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("process", help="reconstruct and track the tissue of a recording",
+                       description="Write a derived MCAP beside the recording (default IN.processed.mcap) with "
+                                   "/tissue/mask, /tissue/depth, /tissue/points, /tf_static and /tracking/points. "
+                                   "The source is never modified.")
+    p.add_argument("src", type=Path, help="recording MCAP")
+    p.add_argument("out", type=Path, nargs="?", help="derived MCAP (default: IN.processed.mcap)")
+    p.add_argument("--depth", default="sgbm", help="depth backend: sgbm (default), stereoanyvideo, recorded")
+    p.add_argument("--depth-options", help="backend options, key=value,... (e.g. code=DIR,checkpoint=FILE)")
+    p.add_argument("--segment", default="colortrack", help="mask backend: colortrack (default), sam2")
+    p.add_argument("--segment-options", help="backend options, key=value,... (e.g. config=...,checkpoint=...)")
+    p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
+                                    "(default: prompt_box in the recording's metadata)")
+    p.add_argument("--tracker", default="geometry", choices=TRACKERS, help="point tracker (default geometry)")
+    p.add_argument("--tracker-options", help="tracker options, key=value,...")
+    p.add_argument("--points", type=int, default=256, help="tracked points (default 256)")
+    p.add_argument("--ground-truth", type=Path, help="simulator ground_truth/ folder (default: beside the raw folder)")
+    p.add_argument("--max-frames", type=int, help="process only the first N frames")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = ProcessOptions(
+        depth=args.depth, depth_options=_options(args.depth_options), segment=args.segment,
+        segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,
+        tracker_options=_options(args.tracker_options), num_points=args.points, seed=args.seed,
+        ground_truth=args.ground_truth, max_frames=args.max_frames, progress=not args.quiet,
+    )
+    out = process_recording(args.src, args.out or default_output(args.src), options, overwrite=args.overwrite)
+    print(f"wrote {out}")
+    return 0
