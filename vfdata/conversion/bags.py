@@ -81,6 +81,8 @@ POSE_DEFAULTS = ("/ECM/measured_cp", "/dvrk/ECM/measured_cp", "/dvrk/ECM/positio
 # dVRK arms publish wrenches estimated from joint torques (e.g. /PSM1/body/measured_cf): never the
 # force sensor, so auto-detection skips them.
 DVRK_ARM_NAMESPACES = ("PSM1", "PSM2", "PSM3", "ECM", "MTML", "MTMR", "SUJ")
+# Names that say "force sensor": netft anywhere, or ati / ft / force_sensor as a whole name part.
+_SENSOR_NAME = re.compile(r"netft|(^|[/_])(ati|ft|force_sensor|ft_sensor|force_torque)([/_]|$)", re.IGNORECASE)
 NO_TOPIC = "none"  # `--pose-topic none`: leave the ECM pose out
 
 # sensor_msgs/Image encodings: name -> (channels, bytes per channel).
@@ -295,8 +297,8 @@ def _choose_force(path: Path, types: dict[str, str], asked: str | None, how: dic
             how["force"] = "default"
             return topic
     wrenches = [t for t, kind in types.items() if kind == WRENCH_STAMPED]
-    sensor_like = [t for t in wrenches if re.search(r"netft|ati|force_sensor|ft_sensor", t, re.IGNORECASE)]
-    not_arms = [t for t in wrenches if t.strip("/").split("/")[0] not in DVRK_ARM_NAMESPACES]
+    not_arms = [t for t in wrenches if not set(t.strip("/").split("/")) & set(DVRK_ARM_NAMESPACES)]
+    sensor_like = [t for t in not_arms if _SENSOR_NAME.search(t)]
     for tier in (sensor_like, not_arms):
         if len(tier) == 1:
             how["force"] = "auto-detected (the only force sensor WrenchStamped topic)"
