@@ -180,7 +180,9 @@ class ColorTrackSettings:
     mask_threshold: float = 0.35  # of the upsampled soft mask: tissue edges are dark and shaded, so
     # the working-resolution mask sits slightly inside the true edge; a low threshold and ...
     edge_dilate_px: int = 1  # ... a dilation of the full-resolution mask even that out
-    prior_inside: float = 2.0  # log-odds bonus deep inside the carried-over mask
+    prior_inside: float = 2.0  # log-odds bonus deep inside the carried-over mask ...
+    prior_edge: float = 1.0  # ... and at its edge: colours seen in neither model (the shaded rim)
+    # stay tissue, so the mask does not erode frame after frame; the grey instrument still leaves
     prior_slope: float = 0.5  # log-odds per working pixel of distance from the carried-over mask edge
     max_growth_px: int = 12  # the mask may grow at most this far (working px) per frame
     depth_tolerance_mm: float = 6.0  # depth cue: slack on the tissue's depth range ...
@@ -420,7 +422,8 @@ class ColorTrackSegmenter(Segmenter):
         prior_u8 = prior_mask.astype(np.uint8)
         dist_out = cv2.distanceTransform(1 - prior_u8, cv2.DIST_L2, 3)
         dist_in = cv2.distanceTransform(prior_u8, cv2.DIST_L2, 3)
-        score = self._log_ratio[bins] + np.minimum(dist_in * s.prior_slope, s.prior_inside)
+        inside = np.clip(s.prior_edge + (dist_in - 1) * s.prior_slope, 0, s.prior_inside) * prior_mask
+        score = self._log_ratio[bins] + inside
         score -= dist_out * s.prior_slope
         if s.grey_penalty > 0:
             score[metal] -= s.grey_penalty
