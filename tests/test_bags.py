@@ -366,9 +366,9 @@ def test_remapped_topics_and_calibration_file(tmp_path):
 
 
 def test_force_auto_detection(tmp_path):
-    # not a default name, but the only WrenchStamped beside a dVRK arm estimate
-    spec = write_bag(tmp_path / "a.bag", BagSpec(force_topics=("/sensor/wrench", "/PSM1/body/measured_cf"),
-                                                 frames=3))
+    # not a default name, but the only WrenchStamped beside dVRK arm estimates ("spatial" is not "ati")
+    arms = ("/PSM1/body/measured_cf", "/PSM1/spatial/measured_cf")
+    spec = write_bag(tmp_path / "a.bag", BagSpec(force_topics=("/sensor/wrench", *arms), frames=3))
     out = convert_bag(tmp_path / "a.bag", tmp_path / "a.mcap", options=PNG)
     assert Recording.open(out).metadata.extra["bag_force_topic"] == "/sensor/wrench"
     assert np.array_equal(Recording.open(out).force.times_ns, spec.force_ns)
