@@ -1,0 +1,107 @@
+"""`vfdata process` on a short simulated recording: the derived MCAP's topics and contents against the
+simulator's ground truth, provenance, and the errors a user can hit."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vfdata.cli import main
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.processing import ProcessOptions, decode_depth, process_recording
+from vfdata.recording import Recording, layout
+from vfdata.recording.inspect import check_file
+from vfdata.sim import synthesize
+
+FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sim")
+    synthesize("mini", root, seed=3, frames=FRAMES, progress=False)
+    return convert_raw_folder(root / "mini_002", root / "mini_002.mcap", options=ConvertOptions(progress=False))
+
+
+@pytest.fixture(scope="module")
+def processed(recording) -> Path:
+    return process_recording(recording, options=ProcessOptions(progress=False))
+
+
+def test_derived_file_layout_and_provenance(recording, processed):
+    assert processed == recording.with_name("mini_002.processed.mcap")
+    assert check_file(processed) == []
+    rec = Recording.open(processed)
+    counts = {topic: info.count for topic, info in rec.topics.items()}
+    assert counts == {layout.TISSUE_MASK: FRAMES, layout.TISSUE_DEPTH: FRAMES, layout.TISSUE_POINTS: FRAMES,
+                      layout.TRACKING_POINTS: FRAMES, layout.TF_STATIC: 1}
+    np.testing.assert_array_equal(rec.log_times_ns(layout.TISSUE_MASK), Recording.open(recording).frame_times_ns)
+    meta = rec.metadata_records[layout.DERIVED_METADATA]
+    assert meta["source_sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
+    assert meta["depth"] == "sgbm" and meta["tracker"] == "geometry" and meta["up_known"] == "true"
+    assert set(json.loads(meta["stage_fps"])) >= {"depth", "mask", "cloud", "tracking"}
+
+
+def test_mask_depth_and_object_frame_match_ground_truth(recording, processed):
+    rec = Recording.open(processed)
+    gt = Path(Recording.open(recording).metadata.source) / "ground_truth"
+    for i in (0, FRAMES - 1):
+        _, mask_msg = next(rec.messages(layout.TISSUE_MASK, i, i + 1))
+        mask = cv2.imdecode(np.frombuffer(mask_msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 0
+        true_mask = cv2.imread(str(gt / "mask" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        assert (mask & true_mask).sum() / (mask | true_mask).sum() > 0.85
+        depth = decode_depth(rec.message(layout.TISSUE_DEPTH, i))
+        true_depth = cv2.imread(str(gt / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) * 0.1
+        inside = true_mask & np.isfinite(depth)
+        assert np.median(np.abs(depth[inside] - true_depth[inside]) / true_depth[inside]) < 0.03
+    frame = json.loads(rec.metadata_records[layout.DERIVED_METADATA]["object_frame"])
+    truth = json.loads((gt / "object_frame.json").read_text())
+    z, true_z = np.asarray(frame["rotation"])[:, 2], np.asarray(truth["rotation"])[:, 2]
+    assert np.degrees(np.arccos(np.clip(z @ true_z, -1, 1))) < 5.0
+
+
+def test_tracks_are_256_points_in_the_object_frame(processed):
+    rec = Recording.open(processed)
+    tf = rec.message(layout.TF_STATIC, 0).transforms[0]
+    assert (tf.frame_id, tf.child_frame_id) == (layout.LEFT_FRAME, layout.OBJECT_FRAME)
+    first = rec.message(layout.TRACKING_POINTS, 0)
+    last = rec.message(layout.TRACKING_POINTS, FRAMES - 1)
+    assert first.frame_id == layout.OBJECT_FRAME and len(first.points) == 256
+    assert set(first.points.dtype.names) == {"x", "y", "z", "visible"}
+    z = first.points["z"]
+    assert np.percentile(z, 2) == pytest.approx(0.0, abs=1.0)  # origin at the 2nd percentile along Z
+    assert first.points["visible"].mean() > 0.9
+    moved = np.linalg.norm(np.stack([last.points[a] - first.points[a] for a in "xyz"], axis=1), axis=1)
+    assert np.isfinite(moved).all() and moved.max() < 30.0
+
+
+def test_source_is_never_modified(recording, processed):
+    before = hashlib.sha256(recording.read_bytes()).hexdigest()
+    process_recording(recording, processed, ProcessOptions(progress=False, tracker="none", max_frames=2),
+                      overwrite=True)
+    assert hashlib.sha256(recording.read_bytes()).hexdigest() == before
+    assert layout.TRACKING_POINTS not in Recording.open(processed).topics
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--depth", "nosuch"], "nosuch"),
+    (["--segment", "sam2"], "sam2"),
+    (["--prompt", "box:10,10,5000,40"], "outside"),
+    (["--prompt", "box:2,2,12,12"], "empty"),
+])
+def test_errors_are_one_line(recording, tmp_path, capsys, argv, message):
+    out = tmp_path / "out.mcap"
+    code = main(["process", "--quiet", "--max-frames", "2", str(recording), str(out), *argv])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and len(err.splitlines()) == 1 and message in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_source_without_images_is_refused(processed, tmp_path, capsys):
+    assert main(["process", "--quiet", str(processed), str(tmp_path / "x.mcap")]) == 1
+    assert "not a stereo recording" in capsys.readouterr().err
