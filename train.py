@@ -4,6 +4,10 @@
     python train.py test --config configs/proposed.yaml --ckpt_path best
     python train.py predict --config configs/proposed.yaml --ckpt_path best
 
+`predict` writes `/force/estimate` for each recording of the predict split (the test split unless
+`--data.predict_split` says otherwise) into `<id>.force.mcap` beside the recording, or in
+`--prediction_writer.output_dir`.
+
 Every run lives in `trainer.default_root_dir` (e.g. runs/proposed): checkpoints/ (best by val/loss,
 and last.ckpt), csv/version_N/metrics.csv, tb/version_N/ (TensorBoard) and the resolved config.
 `--ckpt_path best` also works in a later process: it is looked up in that run's checkpoints/.
@@ -21,6 +25,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from vfdata.errors import InputError, VisionForceError
+from vfmodels.prediction_writer import ForceEstimateWriter
 from vfmodels.regressor import ForceRegressor
 
 
@@ -56,6 +61,8 @@ class ForceCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         # Keep the checkpoint with the lowest validation loss (and the last one, for resuming).
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
+        parser.add_lightning_class_args(ForceEstimateWriter, "prediction_writer")
         parser.set_defaults({
             "checkpoint.monitor": "val/loss",
             "checkpoint.mode": "min",

@@ -4,6 +4,7 @@ separate CLI runs (the best checkpoint is found from the run folder)."""
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -40,7 +41,11 @@ def test_fit_then_test_and_predict_best(tmp_path, capsys):
     train.main(["test", *run, "--ckpt_path=best"])
     metrics = (tmp_path / "run" / "csv" / "version_1" / "metrics.csv").read_text()
     assert "test/rmse_fz" in metrics and "test/mean/rmse" in metrics
-    train.main(["predict", *run, "--ckpt_path=best"])
+    train.main(["predict", *run, "--ckpt_path=best", f"--prediction_writer.output_dir={tmp_path / 'pred'}"])
+    from vfdata.predict import read_force_estimate
+
+    times, force = read_force_estimate(tmp_path / "pred" / "synthetic_000.force.mcap")
+    assert len(times) == 16 and force.shape == (16, 3) and np.isfinite(force).all()
 
 
 def test_best_without_checkpoints_is_a_clear_error(tmp_path, capsys):
