@@ -440,6 +440,11 @@ def test_inspect_bag(tmp_path, capsys):
     assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "/netft_data " in out and "cannot convert: no image topic found" in out
+    # ... also when the problem shows only while reading the messages
+    write_bag(tmp_path / "f.bag", BagSpec(encoding="32FC1", frames=2))
+    text = inspect_bag_text(tmp_path / "f.bag")
+    assert "left images (dVRK default)" in text
+    assert "cannot convert: /jhu_daVinci/left/image_raw: message 0: unsupported image encoding '32FC1'" in text
 
 
 def test_cli_convert_bag(tmp_path, capsys):

@@ -76,17 +76,15 @@ def inspect_bag_text(path: str | Path, topics: bags.BagTopics | None = None, cal
         size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
         lines.append(f"bag: {path}  ({bags.bag_kind(path)}, {size / 1e6:.1f} MB, {reader.message_count} messages, "
                      f"{reader.duration / 1e9:.3f} s)")
+        choice = scan = None
         try:
             choice = bags.choose_topics(path, types, topics or bags.BagTopics(), use_camera_info=calibration is None)
-        except InputError as exc:
-            choice, problem = None, exc.problem
-        if choice is None:
-            counts = {name: info.msgcount for name, info in reader.topics.items()}
-            receive = bags.receive_times(reader, path, progress)
-            scan = None
-        else:
             scan = bags.scan_bag(reader, path, choice, all_topics=True, progress=progress)
             counts, receive = scan.counts, scan.receive_ns
+        except InputError as exc:  # still list the topics, then say why convert would stop
+            problem = exc.problem
+            counts = {name: info.msgcount for name, info in reader.topics.items()}
+            receive = bags.receive_times(reader, path, progress)
     rates = bags.topic_rates_hz(receive)
     used = _used_topics(choice)
     width = max([34, *(len(t) + 2 for t in types)])
