@@ -105,9 +105,10 @@ def _ray_grids(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def voxel_downsample(points: np.ndarray, voxel_mm: float) -> np.ndarray:
-    """One point per occupied voxel (the mean of its points), voxels ordered by their index."""
-    cells = np.floor(points / np.float32(voxel_mm)).astype(np.int64)
-    cells -= cells.min(axis=0)
+    """One point per occupied voxel (the mean of its points), voxels ordered by their index. The
+    grid starts half a voxel below the cloud's minimum, as open3d's voxel_down_sample does."""
+    origin = points.min(axis=0).astype(np.float64) - voxel_mm / 2
+    cells = np.floor((points - origin) / voxel_mm).astype(np.int64)
     dims = cells.max(axis=0) + 1
     key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)

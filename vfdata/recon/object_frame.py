@@ -99,6 +99,7 @@ def estimate_object_frame(
     pts = pts[np.isfinite(pts).all(axis=1)]
     if len(pts) < MIN_SLABS * MIN_SLAB_POINTS:
         raise InputError("tissue cloud", f"{len(pts)} points are too few to find the object frame")
+    all_pts = pts
     if len(pts) > MAX_POINTS:
         pts = pts[np.linspace(0, len(pts) - 1, MAX_POINTS).astype(np.int64)]
     centre = pts.mean(axis=0)
@@ -141,15 +142,16 @@ def estimate_object_frame(
     if slope > 0:
         z = -z
     line_point = final.line_point[0]
-    proj = local @ z
+    proj = (all_pts - centre) @ z
     origin = centre + line_point + (np.percentile(proj, 2) - line_point @ z) * z
 
     up_known = up is not None
     ref = np.asarray(up, dtype=np.float64) if up_known else np.array([0.0, -1.0, 0.0])
     x = ref - (ref @ z) * z
-    if np.linalg.norm(x) < 1e-6 * max(1.0, np.linalg.norm(ref)):
+    # Within 5 degrees of the axis, "up made perpendicular to Z" is dominated by noise.
+    if np.linalg.norm(x) < np.sin(np.radians(5.0)) * np.linalg.norm(ref):
         if up_known:
-            raise InputError("up vector", "gravity-up is parallel to the tissue axis: X is undefined")
+            raise InputError("up vector", "gravity-up is (nearly) parallel to the tissue axis: X is undefined")
         ref = np.array([1.0, 0.0, 0.0])
         x = ref - (ref @ z) * z
     x /= np.linalg.norm(x)
