@@ -538,16 +538,26 @@ class StreamingForceModel:
 class StreamingForceEstimator:
     """Frame-by-frame force estimation from a live rectified stereo source.
 
-    `push(left, right, stamp_ns)` (BGR uint8 images) -> the estimate of the previous frame, or None
-    on the first frame. Stages per frame: depth, tissue mask, tissue cloud, tracking, then
-    `StreamingForceModel` (tokens, the set encoder of the frame, the LSTM). The first frame also fixes
-    the object frame and the tracked points. `stage_seconds` accumulates wall time per stage."""
+    `push(left, right, stamp_ns)` (BGR uint8 images) -> a `ForceEstimate` of an earlier frame, or
+    None while the pipeline fills. Stages per frame: depth, tissue mask, tissue cloud (the image
+    stages), then tracking and `StreamingForceModel` (tokens, the set encoder of the frame, the LSTM).
+    The first frame also fixes the object frame and the tracked points.
+
+    `pipelined=True` runs the image stages of frame t in a worker thread while the calling thread
+    tracks frame t-1 and runs the model (OpenCV, NumPy and PyTorch release the GIL): on two cores
+    the throughput is set by the slower half instead of the sum, for one more frame of latency.
+    Serially, `push` returns the previous frame's estimate (its velocity needs the next frame's
+    points); pipelined, the one before that. `flush()` returns what is still in the pipeline.
+
+    `stage_seconds` accumulates wall time per stage, `stage_cpu_seconds` the CPU time of the thread
+    that ran it (the wall time of an idle core; a fair figure on a loaded machine)."""
 
     def __init__(self, ckpt: str | Path, camera: PinholeCamera, baseline_mm: float, prompt: str,
                  depth: str = "sgbm", segment: str = "colortrack", tracker: str = "geometry",
                  up: np.ndarray | None = None, window: int | None = CLIP_FRAMES, num_points: int = 256,
                  seed: int = 0, spec: TokenSpec | None = None, depth_options: dict | None = None,
-                 segment_options: dict | None = None, tracker_options: dict | None = None):
+                 segment_options: dict | None = None, tracker_options: dict | None = None,
+                 pipelined: bool = False):
         from vfdata.recon import Prompt, make_depth_estimator, make_segmenter
 
         self.regressor, self.spec = load_force_model(ckpt, spec)
@@ -562,12 +572,30 @@ class StreamingForceEstimator:
         self.frame = None  # ObjectFrame, fixed on the first frame
         self.model: StreamingForceModel | None = None
         self.stage_seconds: dict[str, float] = {}
-        self.frames = 0
+        self.stage_cpu_seconds: dict[str, float] = {}
+        self.frames = 0  # frames whose image stages have been started
+        self.tracked = 0  # frames tracked
+        self.pipelined = pipelined
+        self._pool = None
+        self._pending = None  # (future or result of the image stages, left image, stamp) of the last frame
 
-    def _clock(self, stage: str, started: float) -> float:
-        now = time.perf_counter()
-        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + now - started
+    def _clock(self, stage: str, started: tuple[float, float]) -> tuple[float, float]:
+        now = (time.perf_counter(), time.thread_time())
+        self.stage_seconds[stage] = self.stage_seconds.get(stage, 0.0) + now[0] - started[0]
+        self.stage_cpu_seconds[stage] = self.stage_cpu_seconds.get(stage, 0.0) + now[1] - started[1]
         return now
+
+    def _image_stages(self, left: np.ndarray, right: np.ndarray, first: bool):
+        from vfdata.recon import tissue_cloud
+
+        t = (time.perf_counter(), time.thread_time())
+        depth = self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
+        t = self._clock("depth", t)
+        mask = self.segmenter.start(left, self.prompt, depth) if first else self.segmenter.track(left, depth)
+        t = self._clock("mask", t)
+        cloud = tissue_cloud(depth, mask, self.camera)
+        self._clock("cloud", t)
+        return depth, mask, cloud
 
     def _start(self, left: np.ndarray, cloud: np.ndarray) -> None:
         from vfdata.processing import ProcessOptions, _TrackerStage
@@ -584,35 +612,57 @@ class StreamingForceEstimator:
         self.model = StreamingForceModel(self.regressor, self.spec, self.frame.rotation, self.frame.origin,
                                          self.window)
 
-    def push(self, left: np.ndarray, right: np.ndarray, stamp_ns: int) -> ForceEstimate | None:
-        from vfdata.recon import tissue_cloud
-
-        t0 = t = time.perf_counter()
-        depth = self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
-        t = self._clock("depth", t)
-        if self.frames == 0:
-            mask = self.segmenter.start(left, self.prompt, depth)
-        else:
-            mask = self.segmenter.track(left, depth)
-        t = self._clock("mask", t)
-        cloud = tissue_cloud(depth, mask, self.camera)
-        t = self._clock("cloud", t)
-        if self.frames == 0:
+    def _track(self, images, left: np.ndarray, stamp_ns: int) -> tuple[int, np.ndarray] | None:
+        depth, mask, cloud = images
+        t = (time.perf_counter(), time.thread_time())
+        if self.tracked == 0:
             self._start(left, cloud)
             points, visible = self.tracker.points, self.camera.in_mask(self.tracker.points, mask)
         else:
-            points, visible = self.tracker.update(self.frames, cloud, mask, left, depth)
+            points, visible = self.tracker.update(self.tracked, cloud, mask, left, depth)
         t = self._clock("tracking", t)
-        self.frames += 1
+        self.tracked += 1
         result = self.model.push(stamp_ns, self.frame.to_object(points), visible)
         self._clock("force", t)
+        return result
+
+    def push(self, left: np.ndarray, right: np.ndarray, stamp_ns: int) -> ForceEstimate | None:
+        t0 = time.perf_counter()
+        first = self.frames == 0
+        self.frames += 1
+        if not self.pipelined:
+            result = self._track(self._image_stages(left, right, first), left, stamp_ns)
+        else:
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="vf-image-stages")
+            future = self._pool.submit(self._image_stages, left, right, first)
+            result = None
+            if self._pending is not None:
+                images, previous_left, previous_stamp = self._pending
+                result = self._track(images, previous_left, previous_stamp)
+            self._pending = (future.result(), left, stamp_ns)
         return None if result is None else ForceEstimate(result[0], result[1], time.perf_counter() - t0)
 
-    def flush(self) -> ForceEstimate | None:
-        """The last frame's estimate at the end of a stream; the next push starts a new stream."""
-        if self.model is None:
-            return None
+    def flush(self) -> list[ForceEstimate]:
+        """The estimates still in the pipeline at the end of a stream, in frame order; the next push
+        starts a new stream (new object frame, tracks and LSTM state)."""
+        out = []
         t0 = time.perf_counter()
-        result = self.model.flush()
-        self.frames = 0
-        return None if result is None else ForceEstimate(result[0], result[1], time.perf_counter() - t0)
+        if self._pending is not None:
+            result = self._track(*self._pending)
+            self._pending = None
+            if result is not None:
+                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+        if self.model is not None:
+            result = self.model.flush()
+            if result is not None:
+                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+        self.frames = self.tracked = 0
+        return out
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None

@@ -32,6 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, help="only the first N frames")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.add_argument("--stream", action="store_true", help="run the live, frame-by-frame estimator")
+    p.add_argument("--pipelined", action="store_true",
+                   help="with --stream: image stages of the next frame in a second thread (2 cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -74,7 +76,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             prompt = "box:" + ",".join(str(int(round(float(v)))) for v in values)
         estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm, prompt,
                                             depth=args.depth, segment=args.segment, up=camera_up(rec),
-                                            window=window)
+                                            window=window, pipelined=args.pipelined)
         n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
         estimates, latencies = [], []
         for i in tqdm(range(n), desc="stream", unit="frame", disable=args.quiet):
@@ -84,10 +86,9 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             latencies.append(time.perf_counter() - started)
             if result is not None:
                 estimates.append(result)
-        last = estimator.flush()
-        if last is not None:
-            estimates.append(last)
-    latency_ms = np.array(latencies[1:]) * 1000.0  # the first push also fixes the object frame
+        estimates += estimator.flush()
+        estimator.close()
+    latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
     stem = args.recording.name.removesuffix(".mcap")
     path = write_force_mcap(Path(out) / f"{stem}.force.mcap", np.array([e.stamp_ns for e in estimates]),
                             np.stack([e.force_n for e in estimates]), estimator.frame.rotation,
@@ -95,7 +96,9 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
     print(f"{len(estimates)} estimates from {n} frames; per-frame latency (push) median "
           f"{np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} ms, "
-          f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ one frame of delay for the central-difference velocity)")
+          f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ {2 if args.pipelined else 1} frame(s) of delay: the "
+          "central-difference velocity needs the next frame" + (", and the pipeline one more" if args.pipelined else "")
+          + ")")
     print("ms/frame per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in per_stage.items()))
     print(f"wrote {path}")
     return 0
