@@ -501,6 +501,7 @@ class ForceDataModule(_DataModuleBase):
                  predict_split: str = "test", progress: bool = True):
         super().__init__()
         self.save_hyperparameters()
+        self.hparams["frame"] = frame  # Lightning's collector drops an argument named `frame`
         self.manifest_name, self.entries = load_manifest(manifest)
         self.datasets: dict[str, ForceClipDataset] = {}
         self.normalisation: dict[str, torch.Tensor] | None = None

@@ -1,0 +1,247 @@
+"""ForceClipDataset / ForceDataModule on small MCAPs written here with the recording layer: the clip
+cutter at recording ends and across gaps, features and frames, force interpolation, the disk cache,
+DataLoader workers, and clear errors for bad manifests."""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from torch.utils.data import DataLoader
+
+from vfdata.datasets import (
+    ForceClipDataset,
+    ForceDataModule,
+    clip_starts,
+    collate_clips,
+    load_manifest,
+    segments,
+    velocities,
+)
+from vfdata.errors import InputError
+from vfdata.processing import tracks_cloud
+from vfdata.recording import McapWriter, layout
+from vfdata.recording.messages import WrenchStamped
+
+PERIOD = 33_333_333  # ns, 30 frames/s
+T0 = 1_700_000_000_000_000_000
+ROTATION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # object axes in the camera frame
+ORIGIN = np.array([5.0, -3.0, 80.0])  # mm
+
+
+def frame_times(frames: int, gap_after: int | None = None) -> np.ndarray:
+    t = T0 + np.arange(frames, dtype=np.int64) * PERIOD
+    if gap_after is not None:
+        t[gap_after + 1:] += 10 * PERIOD
+    return t
+
+
+def points_at(t_s: np.ndarray, n: int = 20) -> np.ndarray:
+    """(F, n, 3) object-frame mm: a grid at heights 0..n-1 moving along x at 6 mm/s."""
+    base = np.stack([np.zeros(n), np.linspace(-5, 5, n), np.arange(n, dtype=float)], axis=1)
+    return base[None] + np.array([6.0, 0.0, 0.0])[None, None] * t_s[:, None, None]
+
+
+def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True, hidden: tuple = ()) -> None:
+    """<rid>.mcap with a 1 kHz force ramp fx = t (s), fy = 2, fz = -t; <rid>.processed.mcap with tracks."""
+    t_force = np.arange(times[0] - 5 * PERIOD, times[-1] + 5 * PERIOD, 1_000_000, dtype=np.int64)
+    with McapWriter(root / f"{rid}.mcap", separate_topics=(layout.WRENCH,)) as w:
+        for t in t_force:
+            s = (t - T0) / 1e9
+            w.write(layout.WRENCH, WrenchStamped(int(t), layout.SENSOR_FRAME, (s, 2.0, -s), (0.0, 0.0, 0.0)))
+    with McapWriter(root / f"{rid}.processed.mcap") as w:
+        if tracks:
+            pts = points_at((times - T0) / 1e9)
+            for i, t in enumerate(times):
+                visible = np.ones(len(pts[i]), bool)
+                for frame, point in hidden:
+                    if frame == i:
+                        visible[point] = False
+                w.write(layout.TRACKING_POINTS, tracks_cloud(pts[i], visible, int(t)))
+        frame = {"rotation": ROTATION.tolist(), "origin": ORIGIN.tolist()}
+        w.add_metadata(layout.DERIVED_METADATA, {"object_frame": json.dumps(frame)})
+
+
+def write_manifest(root: Path, recordings: list[dict]) -> Path:
+    path = root / "test.manifest.yaml"
+    path.write_text(yaml.safe_dump({"name": "test", "root": ".", "recordings": recordings}))
+    return path
+
+
+@pytest.fixture
+def dataset_root(tmp_path):
+    write_recording(tmp_path, "a", frame_times(40, gap_after=19), hidden=((5, 3),))
+    write_recording(tmp_path, "b", frame_times(23))
+    write_recording(tmp_path, "c", frame_times(18))
+    manifest = write_manifest(tmp_path, [
+        {"id": "a", "orientation_deg": 0, "split": "train"},
+        {"id": "b", "orientation_deg": 0, "split": "val"},
+        {"id": "c", "orientation_deg": 45, "split": "test"},
+    ])
+    return tmp_path, manifest
+
+
+# ---- pure functions ------------------------------------------------------------------------------
+
+
+def test_segments_split_at_gaps():
+    assert segments(frame_times(40, gap_after=19)) == [(0, 20), (20, 40)]
+    assert segments(frame_times(5)) == [(0, 5)]
+    assert segments(np.array([], dtype=np.int64)) == []
+
+
+def test_clip_starts_cover_the_ends_and_skip_short_runs():
+    # 23 frames, T 16, stride 4: 0, 4, then one ending on the last frame (7)
+    assert clip_starts([(0, 23)], 16, 4).tolist() == [0, 4, 7]
+    assert clip_starts([(0, 24)], 16, 4).tolist() == [0, 4, 8]
+    assert clip_starts([(0, 16)], 16, 4).tolist() == [0]
+    assert clip_starts([(0, 15)], 16, 4).tolist() == []
+    # never across a gap: runs 0-19 and 20-39
+    assert clip_starts([(0, 20), (20, 40)], 16, 4).tolist() == [0, 4, 20, 24]
+
+
+def test_velocities_central_one_sided_at_ends_and_gaps():
+    p = np.array([0.0, 1.0, 4.0, 9.0, 100.0, 101.0])[:, None, None] * np.ones((1, 1, 3))
+    v = velocities(p, [(0, 4), (4, 6)], fps=2.0)[:, 0, 0]
+    # central: fps/2 (p[t+1] - p[t-1]); ends one-sided; the jump 9 -> 100 is a gap, never differenced
+    np.testing.assert_allclose(v, [2.0, 4.0, 8.0, 10.0, 2.0, 2.0])
+
+
+# ---- the dataset ---------------------------------------------------------------------------------
+
+
+def test_clips_force_and_features(dataset_root):
+    root, manifest = dataset_root
+    _, entries = load_manifest(manifest)
+    ds = ForceClipDataset(entries[:1], progress=False)
+    assert len(ds) == 4  # two gap-free runs of 20 frames: starts 0, 4 and 20, 24
+    item = ds[2]
+    assert item["tokens"].shape == (16, 20, 6) and item["valid"].shape == (16, 20)
+    assert item["frame_index"].tolist() == list(range(20, 36))
+    assert item["recording"] == "a" and float(item["orientation_deg"]) == 0.0
+    # force interpolated from the 1 kHz ramp at each frame time
+    t_s = (item["frame_time_ns"].numpy() - T0) / 1e9
+    np.testing.assert_allclose(item["force"].numpy(), np.stack([t_s, np.full_like(t_s, 2), -t_s], 1), atol=1e-5)
+    # positions in the object frame; velocity 6 mm/s along x everywhere (also at the run's ends)
+    np.testing.assert_allclose(item["tokens"][..., :3].numpy(), points_at(t_s), atol=1e-4)
+    ok = item["valid"].numpy()
+    np.testing.assert_allclose(item["tokens"][..., 3].numpy()[ok], 6.0, atol=1e-2)
+    np.testing.assert_allclose(item["tokens"][..., 4:].numpy()[ok], 0.0, atol=1e-2)
+
+
+def test_hidden_point_is_invalid_with_its_velocity_neighbours(dataset_root):
+    _, manifest = dataset_root
+    _, entries = load_manifest(manifest)
+    item = ForceClipDataset(entries[:1], progress=False)[0]
+    valid = item["valid"].numpy()
+    assert not valid[5, 3] and not valid[4, 3] and not valid[6, 3]  # hidden at 5; 4 and 6 difference it
+    assert valid[3, 3] and valid[7, 3] and valid[5, 2]
+    assert (item["tokens"][5, 3] == 0).all()
+    # positions alone only lose the hidden sample
+    pos = ForceClipDataset(entries[:1], features="pos", progress=False)[0]
+    assert pos["tokens"].shape[-1] == 3 and not pos["valid"][5, 3] and pos["valid"][4, 3]
+
+
+def test_camera_frame_and_top_bottom(dataset_root):
+    _, manifest = dataset_root
+    _, entries = load_manifest(manifest)
+    obj = ForceClipDataset(entries[:1], features="pos", progress=False)[0]
+    cam = ForceClipDataset(entries[:1], features="pos", frame="camera", progress=False)[0]
+    ok = obj["valid"].numpy()
+    np.testing.assert_allclose(cam["tokens"].numpy()[ok], obj["tokens"].numpy()[ok] @ ROTATION.T + ORIGIN, atol=1e-4)
+    assert (cam["tokens"].numpy()[~ok] == 0).all()
+    tb = ForceClipDataset(entries[:1], features="pos", subset="top_bottom_20", progress=False)[0]["tokens"]
+    assert tb.shape == (16, 8, 3)  # 20% of 20 points at each end by z (heights 0..19)
+    assert sorted(tb[0, :, 2].tolist()) == [0, 1, 2, 3, 16, 17, 18, 19]
+
+
+def test_disk_cache_skips_decoding(dataset_root):
+    root, manifest = dataset_root
+    _, entries = load_manifest(manifest)
+    cache = root / "cache"
+    first = ForceClipDataset(entries[:1], cache_dir=cache, progress=False)
+    assert len(list(cache.glob("a-*.npz"))) == 1
+    # Spoil the MCAPs but keep their size and time stamp: only a cache hit can still load them.
+    for name in ("a.mcap", "a.processed.mcap"):
+        path = root / name
+        stat = path.stat()
+        path.write_bytes(b"\0" * stat.st_size)
+        os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    second = ForceClipDataset(entries[:1], cache_dir=cache, progress=False)
+    torch.testing.assert_close(first[3]["tokens"], second[3]["tokens"])
+    with pytest.raises(Exception):  # noqa: B017 - without the cache the spoiled file is read
+        ForceClipDataset(entries[:1], progress=False)
+
+
+def test_loader_with_workers(dataset_root):
+    _, manifest = dataset_root
+    _, entries = load_manifest(manifest)
+    ds = ForceClipDataset(entries[:1], progress=False)
+    batches = list(DataLoader(ds, batch_size=3, num_workers=2, collate_fn=collate_clips))
+    assert [len(b["recording"]) for b in batches] == [3, 1]
+    assert batches[0]["tokens"].shape == (3, 16, 20, 6) and batches[0]["frame_time_ns"].dtype == torch.int64
+
+
+def test_datamodule_splits_and_training_statistics(dataset_root):
+    _, manifest = dataset_root
+    dm = ForceDataModule(str(manifest), batch_size=2, progress=False)
+    dm.setup("fit")
+    dm.setup("test")
+    assert len(dm.datasets["train"]) == 4 and len(dm.datasets["val"]) == 3 and len(dm.datasets["test"]) == 2
+    train_force = np.concatenate([d.force_n for d in dm.datasets["train"].recordings])
+    np.testing.assert_allclose(dm.normalisation["force_mean"].numpy(), train_force.mean(0), rtol=1e-5, atol=1e-6)
+    assert dm.hparams.fps == pytest.approx(30.0, rel=1e-3)
+    batch = next(iter(dm.test_dataloader()))
+    assert batch["recording"] == ["c", "c"] and batch["orientation_deg"].tolist() == [45.0, 45.0]
+
+
+# ---- errors --------------------------------------------------------------------------------------
+
+
+def test_manifest_naming_a_missing_recording(tmp_path):
+    write_recording(tmp_path, "a", frame_times(20))
+    manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "ghost", "split": "val"}])
+    dm = ForceDataModule(str(manifest), progress=False)
+    with pytest.raises(InputError, match="ghost.processed.mcap: processed recording 'ghost' not found"):
+        dm.setup("fit")
+
+
+def test_recording_without_tracks(tmp_path):
+    write_recording(tmp_path, "a", frame_times(20), tracks=False)
+    manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}])
+    _, entries = load_manifest(manifest)
+    with pytest.raises(InputError, match="recording 'a' has no tracks"):
+        ForceClipDataset(entries, progress=False)
+
+
+def test_bad_manifests(tmp_path):
+    with pytest.raises(InputError, match="manifest not found"):
+        load_manifest(tmp_path / "none.yaml")
+    bad = write_manifest(tmp_path, [{"id": "a", "split": "holdout"}])
+    with pytest.raises(InputError, match="needs an id and a split"):
+        load_manifest(bad)
+    with pytest.raises(ValueError, match="features"):
+        ForceClipDataset([], features="acceleration")
+
+
+def test_ground_truth_source(tmp_path):
+    raw = tmp_path / "g"
+    (raw / "ground_truth").mkdir(parents=True)
+    times = frame_times(20)
+    (raw / "frames.csv").write_text("frame,timestamp_ns\n" + "".join(f"{i},{t}\n" for i, t in enumerate(times)))
+    obj = points_at((times - T0) / 1e9, n=30)
+    np.save(raw / "ground_truth" / "points.npy", (obj @ ROTATION.T + ORIGIN).astype(np.float32))
+    np.save(raw / "ground_truth" / "force.npy", np.tile([1.0, 2.0, 3.0], (20, 1)).astype(np.float32))
+    (raw / "ground_truth" / "object_frame.json").write_text(
+        json.dumps({"rotation": ROTATION.tolist(), "origin_mm": ORIGIN.tolist()}))
+    _, entries = load_manifest(write_manifest(tmp_path, [{"id": "g", "split": "train"}]))
+    ds = ForceClipDataset(entries, source="ground_truth", num_points=10, progress=False)
+    item = ds[0]
+    assert item["tokens"].shape == (16, 10, 6)
+    np.testing.assert_allclose(item["tokens"][..., 3].numpy(), 6.0, atol=1e-2)  # object-frame x velocity
+    np.testing.assert_allclose(item["force"].numpy(), np.tile([1.0, 2.0, 3.0], (16, 1)))
+    cloud = ForceClipDataset(entries, source="ground_truth", input="cloud", cloud_points=50, progress=False)[0]
+    assert cloud["tokens"].shape == (16, 50, 3) and cloud["valid"].all()
