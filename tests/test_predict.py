@@ -83,36 +83,31 @@ def test_force_series_plot(tmp_path):
     assert cv2.imread(str(path)).shape[0] > 100
 
 
-def test_central_velocity_of_uniform_motion_is_constant_including_the_ends():
-    t = np.arange(10)[:, None, None]
-    points = np.concatenate([2.0 * t, -1.0 * t, 0 * t], axis=2) * np.ones((1, 4, 1))
-    v = predict.central_velocity(points, fps=30.0)
-    np.testing.assert_allclose(v[..., 0], 60.0)
-    np.testing.assert_allclose(v[..., 1], -30.0)
-    accel = predict.central_velocity(np.arange(5.0)[:, None, None] ** 2 * np.ones((1, 1, 3)), fps=1.0)
-    np.testing.assert_allclose(accel[2, 0], [4.0] * 3)  # (9 - 1) / 2
+def test_point_tokens_match_the_training_features():
+    from vfdata.datasets import point_features, top_bottom
 
-
-def test_point_tokens_variants():
     rng = np.random.default_rng(0)
     points = rng.normal(size=(6, 50, 3))
     visible = rng.random((6, 50)) > 0.2
     rotation = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     origin = np.array([1.0, 2.0, 50.0])
-    tokens, valid = predict.point_tokens(points, visible, predict.TokenSpec())
+    tokens, valid = predict.point_tokens(points, visible, predict.TokenSpec(fps=10.0))
     assert tokens.shape == (6, 50, 6) and tokens.dtype == np.float32
-    np.testing.assert_array_equal(valid, visible)
-    cam, _ = predict.point_tokens(points, visible, predict.TokenSpec(frame="camera", features="position"),
+    expected, expected_valid = point_features(points, visible, [(0, 6)], 10.0, "pos_vel")
+    np.testing.assert_array_equal(tokens, expected)
+    np.testing.assert_array_equal(valid, expected_valid)
+    # Uniform motion: the velocity is the same at every frame, the ends included.
+    moving = np.arange(6)[:, None, None] * np.array([2.0, -1.0, 0.0]) + np.zeros((1, 4, 3))
+    vel, _ = predict.point_tokens(moving, np.ones((6, 4), bool), predict.TokenSpec(features="vel", fps=30.0))
+    np.testing.assert_allclose(vel[..., :2], np.broadcast_to([60.0, -30.0], (6, 4, 2)))
+    cam, _ = predict.point_tokens(points, np.ones((6, 50), bool), predict.TokenSpec(frame="camera", features="pos"),
                                   rotation, origin)
     np.testing.assert_allclose(cam, points @ rotation.T + origin, rtol=1e-6)
-    vel, _ = predict.point_tokens(points, visible, predict.TokenSpec(features="velocity", fps=10.0))
-    np.testing.assert_allclose(vel, predict.central_velocity(points, 10.0), rtol=1e-5, atol=1e-5)
-    sub, sub_valid = predict.point_tokens(points, visible, predict.TokenSpec(subset="top_bottom"))
-    keep = predict.top_bottom_selection(points[0])
+    sub, sub_valid = predict.point_tokens(points, visible, predict.TokenSpec(subset="top_bottom_20"))
+    keep = top_bottom(points[0])
     assert sub.shape == (6, 20, 6)
     z = points[0, :, 2]
     assert set(keep) == set(np.argsort(z)[:10]) | set(np.argsort(z)[-10:])
-    np.testing.assert_array_equal(sub_valid, visible[:, keep])
     with pytest.raises(Exception, match="object frame"):
         predict.point_tokens(points, visible, predict.TokenSpec(frame="camera"))
 
@@ -156,7 +151,7 @@ def test_windowed_forces_equal_the_model_on_each_causal_window():
 
 
 @pytest.mark.parametrize("window", [8, None])
-@pytest.mark.parametrize("subset", ["all", "top_bottom"])
+@pytest.mark.parametrize("subset", ["all", "top_bottom_20"])
 def test_streaming_model_reproduces_the_offline_forces(window, subset):
     reg = _regressor(1)
     points, visible = _tracks(frames=25)
@@ -184,13 +179,13 @@ def test_load_force_model_reads_the_token_spec_and_checks_features(tmp_path):
     reg = _regressor()
     ckpt = _save_checkpoint(reg, tmp_path / "m.ckpt", {"frame": "camera", "fps": 25.0})
     loaded, spec = predict.load_force_model(ckpt)
-    assert spec.frame == "camera" and spec.fps == 25.0 and spec.features == "position+velocity"
+    assert spec.frame == "camera" and spec.fps == 25.0 and spec.features == "pos_vel"
     points, visible = _tracks(frames=10)
     np.testing.assert_allclose(
         predict.forces_from_tracks(loaded, predict.TokenSpec(), points, visible, np.eye(3), np.zeros(3)),
         predict.forces_from_tracks(reg, predict.TokenSpec(), points, visible, np.eye(3), np.zeros(3)), rtol=1e-5)
     with pytest.raises(InputError, match="features per point"):
-        predict.load_force_model(ckpt, predict.TokenSpec(features="position"))
+        predict.load_force_model(ckpt, predict.TokenSpec(features="pos"))
     with pytest.raises(InputError, match="checkpoint not found"):
         predict.load_force_model(tmp_path / "missing.ckpt")
 

@@ -168,67 +168,46 @@ class OverlayVideo:
 
 @dataclass(frozen=True)
 class TokenSpec:
-    """How the point tokens of a model are made from tracks (must match the training data):
-    frame "object" or "camera"; features "position+velocity", "position" or "velocity";
-    subset "all" or "top_bottom" (the top and bottom `fraction` of the points by object-frame z on the
-    reference frame); `fps` the frame rate for velocities (mm/s)."""
+    """How the point tokens of a model are made from tracks, with the names and meaning of
+    `vfdata.datasets.ForceDataModule` (the model must see what it was trained on): frame "object" or
+    "camera"; features "pos_vel", "pos" or "vel"; subset "all" or "top_bottom_20" (the top and bottom
+    20% of the points by object-frame z on the first frame); `fps` for velocities in mm/s."""
 
     frame: str = "object"
-    features: str = "position+velocity"
+    features: str = "pos_vel"
     subset: str = "all"
-    fraction: float = 0.2
     fps: float = 30.0
 
     @property
     def channels(self) -> int:
-        return 6 if self.features == "position+velocity" else 3
-
-
-def central_velocity(points_mm: np.ndarray, fps: float) -> np.ndarray:
-    """(T, N, 3) positions -> velocities (mm/s): v_t = fps/2 (p_{t+1} - p_{t-1}); one-sided
-    differences at the two ends (v_0 = fps (p_1 - p_0), v_{T-1} = fps (p_{T-1} - p_{T-2}))."""
-    p = np.asarray(points_mm, dtype=np.float64)
-    v = np.zeros_like(p)
-    if len(p) < 2:
-        return v
-    v[1:-1] = 0.5 * fps * (p[2:] - p[:-2])
-    v[0] = fps * (p[1] - p[0])
-    v[-1] = fps * (p[-1] - p[-2])
-    return v
-
-
-def top_bottom_selection(reference_object_mm: np.ndarray, fraction: float = 0.2) -> np.ndarray:
-    """Indices of the points in the top and bottom `fraction` by object-frame z on the reference frame."""
-    z = np.asarray(reference_object_mm, dtype=np.float64)[:, 2]
-    order = np.argsort(z, kind="stable")
-    k = max(1, int(round(fraction * len(z))))
-    return np.sort(np.concatenate([order[:k], order[-k:]]))
+        return 6 if self.features == "pos_vel" else 3
 
 
 def point_tokens(points_object_mm: np.ndarray, visible: np.ndarray, spec: TokenSpec,
-                 rotation: np.ndarray | None = None, origin_mm: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Tracks (T, N, 3) in the object frame (mm) + visibility (T, N) -> tokens (T, N', C) float32 and
-    valid (T, N') bool per `spec`. The camera-frame variant needs the object frame (`rotation`,
-    `origin_mm`) to map the points back."""
+                 rotation: np.ndarray | None = None, origin_mm: np.ndarray | None = None,
+                 keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Consecutive tracks (T, N, 3) in the object frame (mm) + visibility (T, N) -> tokens (T, N', C)
+    float32 and valid (T, N') bool, exactly as the training data (`vfdata.datasets.point_features`:
+    central-difference velocities, one-sided at the ends; a point whose stencil has a lost neighbour
+    is invalid). The camera-frame variant needs the object frame (`rotation`, `origin_mm`); `keep`
+    fixes the top/bottom subset (default: chosen on the first of these frames)."""
+    from vfdata.datasets import TOP_BOTTOM_FRACTION, point_features, top_bottom
+
     points = np.asarray(points_object_mm, dtype=np.float64)
-    valid = np.asarray(visible, dtype=bool) & np.isfinite(points).all(axis=-1)
+    visible = np.asarray(visible, dtype=bool)
+    if spec.subset == "top_bottom_20":
+        keep = top_bottom(points[0], TOP_BOTTOM_FRACTION) if keep is None else keep
+        points, visible = points[:, keep], visible[:, keep]
+    elif spec.subset != "all":
+        raise VisionForceError(f"unknown point subset '{spec.subset}'")
     if spec.frame == "camera":
         if rotation is None or origin_mm is None:
             raise VisionForceError("camera-frame tokens need the object frame's rotation and origin")
         points = points @ np.asarray(rotation).T + np.asarray(origin_mm)
-    if spec.subset == "top_bottom":
-        keep = top_bottom_selection(np.asarray(points_object_mm)[0], spec.fraction)
-        points, valid = points[:, keep], valid[:, keep]
-    points = np.nan_to_num(points)
-    parts = []
-    if spec.features in ("position+velocity", "position"):
-        parts.append(points)
-    if spec.features in ("position+velocity", "velocity"):
-        parts.append(central_velocity(points, spec.fps))
-    if not parts:
-        raise VisionForceError(f"unknown token features '{spec.features}'")
-    return np.concatenate(parts, axis=-1).astype(np.float32), valid
+    try:
+        return point_features(points, visible, [(0, len(points))], spec.fps, spec.features)
+    except ValueError as exc:
+        raise VisionForceError(str(exc)) from None
 
 
 # ---- the model ---------------------------------------------------------------------------------
@@ -256,19 +235,12 @@ def token_spec_from_checkpoint(ckpt: str | Path) -> TokenSpec:
     the names `vfdata.datasets.ForceDataModule` uses; defaults where it saved none."""
     state = torch.load(ckpt, map_location="cpu", weights_only=True)
     hp = dict(state.get("datamodule_hyper_parameters", {}) or {})
-    spec = TokenSpec()
-    values = {}
-    if "frame" in hp:
-        values["frame"] = str(hp["frame"])
-    features = hp.get("features")
-    if features is not None:
-        values["features"] = {"pos_vel": "position+velocity", "pos": "position", "vel": "velocity"}.get(
-            str(features), str(features))
-    if "subset" in hp:
-        values["subset"] = {"top_bottom_20": "top_bottom"}.get(str(hp["subset"]), str(hp["subset"]))
-    if "fps" in hp:
+    if hp.get("input", "tracks") != "tracks":
+        raise InputError(ckpt, f"the model was trained on '{hp['input']}' inputs, not tracked points")
+    values = {key: str(hp[key]) for key in ("frame", "features", "subset") if hp.get(key) is not None}
+    if hp.get("fps") is not None:
         values["fps"] = float(hp["fps"])
-    return TokenSpec(**{**spec.__dict__, **values})
+    return TokenSpec(**values)
 
 
 @torch.no_grad()
@@ -492,8 +464,10 @@ class StreamingForceModel:
         self.recent.append((int(stamp_ns), np.asarray(points_object_mm, dtype=np.float64),
                             np.asarray(visible, dtype=bool)))
         if len(self.recent) == 1:
-            if self.spec.subset == "top_bottom":
-                self.keep = top_bottom_selection(self.recent[0][1], self.spec.fraction)
+            if self.spec.subset == "top_bottom_20":
+                from vfdata.datasets import TOP_BOTTOM_FRACTION, top_bottom
+
+                self.keep = top_bottom(self.recent[0][1], TOP_BOTTOM_FRACTION)
             return None
         # The middle frame of the last three (the first frame, from the first two): its velocity is
         # a central difference (one-sided at the start), as over a whole recording.
@@ -517,11 +491,8 @@ class StreamingForceModel:
         recent = list(self.recent)
         points = np.stack([p[1] for p in recent])
         visible = np.stack([p[2] for p in recent])
-        spec = TokenSpec(**{**self.spec.__dict__, "subset": "all"})  # the subset was fixed on frame 0
-        tokens, valid = point_tokens(points, visible, spec, self.rotation, self.origin_mm)
+        tokens, valid = point_tokens(points, visible, self.spec, self.rotation, self.origin_mm, self.keep)
         tokens, valid = tokens[target], valid[target]
-        if self.keep is not None:
-            tokens, valid = tokens[self.keep], valid[self.keep]
         model = self.regressor.model
         x = self.regressor.normalise_input(torch.from_numpy(tokens)[None, None])
         z = model.encode_frames(x, torch.from_numpy(valid)[None, None])[0]  # (1, D)
