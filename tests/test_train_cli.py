@@ -53,3 +53,48 @@ def test_best_without_checkpoints_is_a_clear_error(tmp_path, capsys):
         train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--ckpt_path=best"])
     assert exit_info.value.code == 1
     assert "no checkpoint to use as 'best'" in capsys.readouterr().err
+
+
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+POINT_CONFIGS = [c for c in CONFIGS if "baseline" not in c.name and "point_cloud" not in c.name]
+
+
+def test_every_config_parses(capsys):
+    assert {c.stem for c in CONFIGS} >= {"proposed", "ablation_camera_frame", "ablation_position_only",
+                                         "ablation_velocity_only", "ablation_top_bottom", "ablation_point_cloud",
+                                         "baseline_rgb", "baseline_depth_vit"}
+    for config in CONFIGS:
+        with pytest.raises(SystemExit) as exit_info:
+            train.main(["fit", f"--config={config}", "--print_config"])
+        assert exit_info.value.code == 0, config
+        assert "class_path: vfdata.datasets.ForceDataModule" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("config", POINT_CONFIGS, ids=[c.stem for c in POINT_CONFIGS])
+def test_point_configs_fast_dev_run_on_tracks(config, tmp_path):
+    from test_datasets import frame_times, write_manifest, write_recording
+
+    for rid, frames in (("a", 24), ("b", 20), ("c", 20)):
+        write_recording(tmp_path, rid, frame_times(frames))
+    manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "b", "split": "val"},
+                                         {"id": "c", "orientation_deg": 30, "split": "test"}])
+    train.main(["fit", f"--config={config}", f"--data.manifest={manifest}", "--data.cache_dir=null",
+                "--data.progress=false", f"--trainer.default_root_dir={tmp_path / 'run'}",
+                "--trainer.fast_dev_run=true", "--trainer.enable_progress_bar=false", "--trainer.accelerator=cpu"])
+
+
+@pytest.mark.slow
+def test_fast_dev_run_on_the_mini_preset(tmp_path):
+    """The whole chain on the simulator's `mini` preset (shortened): synth, convert, process with the
+    ground-truth tracker, then fit through the CLI with the proposed model's config."""
+    from vfdata.cli import main as vfdata_main
+    from vfdata.sim import synthesize
+
+    manifest = synthesize("mini", tmp_path / "mini", frames=20, progress=False)
+    _, entries = __import__("vfdata.datasets", fromlist=["load_manifest"]).load_manifest(manifest)
+    for e in entries:
+        assert vfdata_main(["convert", str(e.raw), str(e.mcap), "--quiet"]) == 0
+        assert vfdata_main(["process", str(e.mcap), "--depth", "recorded", "--tracker", "groundtruth", "--quiet"]) == 0
+    train.main(["fit", f"--config={ROOT / 'configs' / 'proposed.yaml'}", f"--data.manifest={manifest}",
+                "--data.cache_dir=null", f"--trainer.default_root_dir={tmp_path / 'run'}",
+                "--trainer.fast_dev_run=true", "--trainer.enable_progress_bar=false", "--trainer.accelerator=cpu"])
