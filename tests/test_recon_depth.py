@@ -112,7 +112,9 @@ def test_stereoanyvideo_without_code_or_weights_fails_clearly(tmp_path):
     code.mkdir(parents=True)
     (code / "stereoanyvideo.py").write_text("")
     with pytest.raises(BackendError, match="not found"):
-        make_depth_estimator("stereoanyvideo", code=tmp_path / "stereoanyvideo", checkpoint=tmp_path / "x.pth")
+        make_depth_estimator(
+            "stereoanyvideo", code=tmp_path / "stereoanyvideo", checkpoint=tmp_path / "x.pth"
+        )
 
 
 def test_bad_sgbm_options_and_images():

@@ -15,7 +15,9 @@ from vfdata.recon.object_frame import hemisphere_directions
 
 
 def _angle_deg(a, b):
-    return float(np.degrees(np.arccos(np.clip(abs(np.dot(a, b)) / np.linalg.norm(a) / np.linalg.norm(b), 0, 1))))
+    return float(
+        np.degrees(np.arccos(np.clip(abs(np.dot(a, b)) / np.linalg.norm(a) / np.linalg.norm(b), 0, 1)))
+    )
 
 
 def _side_view_rotation(rng):

@@ -73,9 +73,9 @@ def _scene(t: int, instrument_x: float | None, h: int = 240, w: int = 320):
 
 def test_colortrack_follows_motion_and_cuts_out_the_instrument():
     instrument = [None] * 5 + [150.0, 165.0, 180.0, 195.0, 210.0] + [None] * 6
-    frames, truth = zip(*[_scene(t, x) for t, x in enumerate(instrument)])
+    frames, truth = zip(*[_scene(t, x) for t, x in enumerate(instrument)], strict=True)
     masks = segment_video(frames, "box:60,70,260,170")
-    ious = [mask_iou(m, g) for m, g in zip(masks, truth)]
+    ious = [mask_iou(m, g) for m, g in zip(masks, truth, strict=True)]
     assert min(ious) > 0.9, [round(i, 3) for i in ious]
     # The instrument is out of the mask while it covers the tissue...
     covered = ~truth[7] & _scene(7, None)[1]
@@ -110,14 +110,14 @@ def test_prompt_off_the_tissue_gives_a_clear_error_or_small_mask():
 
 @pytest.fixture(scope="module")
 def sim_recording(tmp_path_factory):
-    return make_sim_recording(tmp_path_factory.mktemp("sim"), index=0, frames=8)
+    return make_sim_recording(tmp_path_factory.mktemp("sim"), index=0, frames=5)
 
 
 def test_colortrack_on_the_simulator(sim_recording):
-    data = load_sim_frames(sim_recording, 8)
+    data = load_sim_frames(sim_recording, 5)
     prompt = Prompt.from_box(data["prompt_box"])
     masks = make_segmenter("colortrack").segment_video(data["left"], prompt, depths=data["depth"])
-    ious = [mask_iou(m, g) for m, g in zip(masks, data["mask"])]
+    ious = [mask_iou(m, g) for m, g in zip(masks, data["mask"], strict=True)]
     assert np.mean(ious) >= 0.9, [round(i, 3) for i in ious]
 
 
@@ -135,6 +135,7 @@ def test_sam2_and_detector_fail_clearly_without_weights(tmp_path):
         DetectorPrompt(weights=tmp_path / "none.pth")
 
 
+@pytest.mark.slow
 def test_detector_loads_a_state_dict_and_returns_a_box(tmp_path):
     torch = pytest.importorskip("torch")
     from torchvision.models.detection import fasterrcnn_resnet50_fpn
@@ -144,7 +145,7 @@ def test_detector_loads_a_state_dict_and_returns_a_box(tmp_path):
     torch.manual_seed(0)
     model = fasterrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=2)
     torch.save({"model": model.state_dict()}, tmp_path / "det.pth")
-    detector = DetectorPrompt(weights=tmp_path / "det.pth", min_score=0.0)
+    detector = DetectorPrompt(weights=tmp_path / "det.pth", min_score=0.0, min_size=160)
     frame, _ = _scene(0, None)
     try:
         prompt = detector(frame)

@@ -151,7 +151,9 @@ def estimate_object_frame(
     # Within 5 degrees of the axis, "up made perpendicular to Z" is dominated by noise.
     if np.linalg.norm(x) < np.sin(np.radians(5.0)) * np.linalg.norm(ref):
         if up_known:
-            raise InputError("up vector", "gravity-up is (nearly) parallel to the tissue axis: X is undefined")
+            raise InputError(
+                "up vector", "gravity-up is (nearly) parallel to the tissue axis: X is undefined"
+            )
         ref = np.array([1.0, 0.0, 0.0])
         x = ref - (ref @ z) * z
     x /= np.linalg.norm(x)

@@ -101,8 +101,9 @@ class Prompt:
             return 0 <= x <= width - 1 and 0 <= y <= height - 1
 
         if self.box is not None:
+            # Box corners are continuous coordinates: the far edge may sit on the image border.
             x0, y0, x1, y1 = self.box
-            if not (inside(x0, y0) and inside(x1, y1)):
+            if not (0 <= x0 and 0 <= y0 and x1 <= width and y1 <= height):
                 raise InputError("prompt", f"box {list(self.box)} is outside the {width}x{height} image")
         for x, y in self.positive + self.negative:
             if not inside(x, y):
@@ -607,6 +608,7 @@ class DetectorPrompt:
     num_classes: int = 2
     label: int = 1
     min_score: float = 0.5
+    min_size: int = 800  # torchvision's input rescaling (shorter side), as in training
     device: str = "cpu"
     _model: object = field(default=None, init=False, repr=False)
 
@@ -622,7 +624,9 @@ class DetectorPrompt:
         import torch
         from torchvision.models.detection import fasterrcnn_resnet50_fpn
 
-        model = fasterrcnn_resnet50_fpn(weights=None, weights_backbone=None, num_classes=self.num_classes)
+        model = fasterrcnn_resnet50_fpn(
+            weights=None, weights_backbone=None, num_classes=self.num_classes, min_size=self.min_size
+        )
         state = torch.load(path, map_location="cpu")
         for key in ("model", "state_dict"):
             if isinstance(state, dict) and key in state:
@@ -648,7 +652,9 @@ class DetectorPrompt:
         if not bool(keep.any()):
             raise InputError("detector", f"no tissue box with score >= {self.min_score} on the first frame")
         best = int(torch.argmax(torch.where(keep, out["scores"], torch.zeros_like(out["scores"]))))
-        return Prompt.from_box(out["boxes"][best].tolist())
+        h, w = image.shape[:2]
+        x0, y0, x1, y1 = out["boxes"][best].tolist()
+        return Prompt.from_box([max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1)])
 
 
 # ------------------------------------------------------------------------------------------ factory
