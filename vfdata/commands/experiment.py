@@ -28,8 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")
     p.add_argument("--reports-only", action="store_true", help="only (re)write the tables and plots of OUT")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("train_args", nargs=argparse.REMAINDER,
-                   help="after --, extra LightningCLI arguments for every run (e.g. -- --data.batch_size=16)")
+    p.add_argument("--train-arg", dest="train_args", action="append", default=[], metavar="ARG",
+                   help="an extra LightningCLI argument for every run, repeatable "
+                        "(e.g. --train-arg=--data.batch_size=16)")
     p.set_defaults(func=run)
 
 
@@ -43,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants,
                                 depth=args.depth, segment=args.segment, workers=args.workers,
                                 max_frames=args.max_frames, progress=not args.quiet,
-                                train_args=[a for a in args.train_args if a != "--"])
+                                train_args=args.train_args)
     if args.configs is not None:
         options.configs = args.configs
     result = run_experiment(args.manifest, args.out, options)
