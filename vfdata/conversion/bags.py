@@ -892,8 +892,13 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         return data.tobytes()
 
     def encode(item) -> tuple[bytes, bytes]:
+        """Both images of pair k as CompressedImage CDR payloads (built here, off the main thread)."""
         k, left, right = item
-        return encode_one(streams[0], k, left), encode_one(streams[1], k, right)
+        stamp = int(plan.stamps_ns[k])
+        return tuple(
+            CompressedImage(stamp, frame, options.image_format, encode_one(stream, k, msg)).encode()
+            for stream, msg, frame in ((streams[0], left, layout.LEFT_FRAME), (streams[1], right, layout.RIGHT_FRAME))
+        )
 
     force, pose = scan.force, scan.pose
     force_frame = force.frame_id or layout.SENSOR_FRAME
@@ -910,7 +915,7 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         frames = ordered_map(pool, encode, _stereo_messages(reader, scan, plan), window=4 * max(1, options.workers))
         with tqdm(total=len(plan.stamps_ns), desc=f"convert {scan.path.name}", unit="frame",
                   disable=not options.progress) as bar:
-            for k, (left_bytes, right_bytes) in enumerate(frames):
+            for k, (left_payload, right_payload) in enumerate(frames):
                 stamp = int(plan.stamps_ns[k])
                 _write_series(writer, layout.WRENCH, WrenchStamped.msgtype, force, force_frame,
                               int(force_until[k - 1]) if k else 0, int(force_until[k]))
@@ -920,10 +925,8 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
                 info_l.stamp_ns = info_r.stamp_ns = stamp
                 writer.write(layout.LEFT_INFO, info_l)
                 writer.write(layout.RIGHT_INFO, info_r)
-                writer.write(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, options.image_format,
-                                                                left_bytes))
-                writer.write(layout.RIGHT_IMAGE, CompressedImage(stamp, layout.RIGHT_FRAME, options.image_format,
-                                                                 right_bytes))
+                writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
+                writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
                 bar.update()
         _write_series(writer, layout.WRENCH, WrenchStamped.msgtype, force, force_frame, int(force_until[-1]),
                       len(force.stamps_ns))
