@@ -147,3 +147,31 @@ def test_claims_flag_a_failed_claim():
     assert result["object_frame_halves_rmse"]["holds"] is False
     assert result["object_frame_halves_rmse"]["reduction"] == pytest.approx(0.2)
     assert result["beats_velocity_only"]["holds"] is False
+
+
+@pytest.mark.slow
+def test_experiment_end_to_end_on_a_tiny_simulated_dataset(tmp_path):
+    """Synthesis -> conversion -> processing (geometry and KLT) -> training -> test -> reports, then a
+    second call that repeats nothing."""
+    from vfdata.sim import synthesize
+
+    manifest = synthesize("mini", tmp_path / "data", seed=0, workers=2, progress=False, frames=40)
+    options = experiment.ExperimentOptions(seeds=1, epochs=1, variants=["proposed", "klt"], workers=2,
+                                           progress=False)
+    result = experiment.run_experiment(manifest, tmp_path / "results", options)
+    assert (tmp_path / "data" / "mini_002.klt.mcap").is_file()
+    for variant in ("proposed", "klt"):
+        run = tmp_path / "results" / "runs" / variant / "seed0"
+        metrics = json.loads((run / "metrics.json").read_text())
+        predictions = dict(np.load(run / "predictions.npz"))
+        reports.check_predictions(predictions)
+        assert set(predictions["recording"]) == {"mini_002"} and metrics["test_frames"] == len(predictions["true"])
+        assert len(np.unique(predictions["frame_time_ns"])) == len(predictions["frame_time_ns"])
+        assert metrics["pooled"]["rmse"] == pytest.approx(reports.run_metrics(predictions)["pooled"]["rmse"])
+    for key in ("table1.md", "table2.md", "table3.md", "timing.md", "fig5", "fig6", "fig7"):
+        assert result.reports[key].is_file(), key
+    assert "KLT" in result.reports["table3.md"].read_text()
+    stamp = (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns
+    again = experiment.run_experiment(manifest, tmp_path / "results", options)
+    assert (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns == stamp
+    assert again.seconds["train_test"] < 5.0

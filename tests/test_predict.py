@@ -206,3 +206,40 @@ def test_force_mcap_round_trip(tmp_path):
         assert tf.transforms[0].child_frame_id == layout.OBJECT_FRAME
         np.testing.assert_allclose(tf.transforms[0].translation, [0.001, 0.002, 0.08])
         assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == "arbitrary"
+
+
+@pytest.mark.slow
+def test_predict_recording_and_streaming_agree_on_a_simulated_recording(tmp_path):
+    """The whole offline pipeline (processing, model, MCAP, plot, video) on a simulated recording
+    without using its force, then the live estimator (serial and pipelined) on the same frames."""
+    from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+    from vfdata.processing import camera_up
+    from vfdata.sim import synthesize
+
+    manifest = synthesize("mini", tmp_path / "data", seed=0, workers=1, progress=False, frames=20)
+    recording = convert_raw_folder(manifest.parent / "mini_002", tmp_path / "mini_002.mcap",
+                                   options=ConvertOptions(progress=False))
+    ckpt = _save_checkpoint(_regressor(), tmp_path / "m.ckpt", {"input": "tracks", "fps": 30.0})
+    result = predict.predict_recording(recording, ckpt, tmp_path / "out", window=8, progress=False)
+    times, force = predict.read_force_estimate(result.force_mcap)
+    assert len(times) == result.frames == 20 and np.isfinite(force).all()
+    capture = cv2.VideoCapture(str(result.video))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 20
+    assert cv2.imread(str(result.plot)) is not None
+    tracks = predict.read_tracks(result.processed)
+    np.testing.assert_array_equal(tracks.times_ns, times)
+
+    with Recording.open(recording) as rec:
+        frames = [rec.rectified_frame(i) for i in range(rec.num_frames)]
+        camera, baseline, up = rec.camera, rec.stereo.baseline_mm, camera_up(rec)
+        prompt = "box:" + ",".join(str(int(round(float(v)))) for v in
+                                   rec.metadata.extra["prompt_box"].strip("[]").split(","))
+    for pipelined in (False, True):
+        live = predict.StreamingForceEstimator(ckpt, camera, baseline, prompt, up=up, window=8, pipelined=pipelined)
+        estimates = [e for f in frames if (e := live.push(f.left, f.right, f.stamp_ns)) is not None]
+        assert len(estimates) == 20 - (2 if pipelined else 1)
+        estimates += live.flush()
+        live.close()
+        assert [e.stamp_ns for e in estimates] == list(times)
+        np.testing.assert_allclose(np.stack([e.force_n for e in estimates]), force, rtol=1e-3, atol=1e-3)
+        assert set(live.stage_seconds) == {"depth", "mask", "cloud", "tracking", "force"}

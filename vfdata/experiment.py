@@ -265,7 +265,9 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     run_dir.mkdir(parents=True, exist_ok=True)
     args = [f"--config={config}", f"--data.manifest={manifest}", f"--seed_everything={seed}",
             f"--trainer.default_root_dir={run_dir}", "--trainer.enable_progress_bar=false",
-            "--trainer.enable_model_summary=false", *options.train_args]
+            "--trainer.enable_model_summary=false", "--data.progress=false",
+            # Decoded arrays are cached per results folder (keyed by the source files and options).
+            f"--data.cache_dir={run_dir.parent.parent.parent / 'cache'}", *options.train_args]
     if options.epochs is not None:
         args.append(f"--trainer.max_epochs={options.epochs}")
     started = time.perf_counter()
