@@ -89,5 +89,5 @@ def test_empty_mask_and_bad_inputs():
     assert tissue_cloud(depth, np.zeros_like(mask), CAM).shape == (0, 3)
     with pytest.raises(InputError):
         tissue_cloud(depth[:10], mask, CAM)
-    with pytest.raises(BackendError, match="numpy, open3d"):
+    with pytest.raises(BackendError, match="auto, numpy, open3d"):
         tissue_cloud(depth, mask, CAM, backend="pcl")

@@ -9,7 +9,8 @@ For speed the back-projection first averages the 3D points of small pixel blocks
 block is at most half a voxel wide at the tissue's depth: it changes nothing the voxel grid would
 keep, and leaves the voxel grid and the neighbour search a tenth of the points. The voxel grid and
 the outlier removal run in open3d (`backend="open3d"`) or numpy/scipy (`backend="numpy"`); both give
-the same cloud up to the order of the points.
+the same cloud up to the order of the points; open3d's neighbour search is about twice as fast, so
+"auto" takes it when it imports.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import BackendError, InputError
 
-CLOUD_BACKENDS = ("numpy", "open3d")
+CLOUD_BACKENDS = ("auto", "numpy", "open3d")
 
 
 def tissue_cloud(
@@ -33,11 +34,12 @@ def tissue_cloud(
     voxel_mm: float = 1.0,
     outlier_neighbors: int = 16,
     outlier_std: float = 2.0,
-    backend: str = "numpy",
+    backend: str = "auto",
 ) -> np.ndarray:
     """(H, W) depth (mm, NaN or <= 0: none) and (H, W) tissue mask -> (N, 3) float32 camera-frame
     points (mm): one per occupied voxel of `voxel_mm` (the mean of its points), statistical
-    outliers removed (`outlier_neighbors` = 0 turns that off). Empty (0, 3) if the mask is empty."""
+    outliers removed (`outlier_neighbors` = 0 turns that off). Empty (0, 3) if the mask is empty.
+    `backend` "auto" is open3d when it imports (about twice as fast: its neighbour search), else numpy."""
     depth = np.asarray(depth_mm, dtype=np.float32)
     mask = np.asarray(mask)
     if depth.ndim != 2 or mask.shape[:2] != depth.shape:
@@ -55,6 +57,8 @@ def tissue_cloud(
     points = backproject_binned(depth, mask.astype(bool), camera, voxel_mm / 2)
     if len(points) == 0:
         return np.zeros((0, 3), dtype=np.float32)
+    if backend == "auto":
+        backend = "open3d" if _open3d() is not None else "numpy"
     if backend == "open3d":
         return _open3d_clean(points, voxel_mm, outlier_neighbors, outlier_std)
     points = voxel_downsample(points, voxel_mm)
@@ -69,23 +73,32 @@ def backproject_binned(
     """Masked depth -> (N, 3) float32 points, averaging the points of b x b pixel blocks where b is
     the largest block no wider than `max_block_mm` at the masked median depth (b = 1: one point per
     pixel). A block yields a point when at least half of its pixels are valid tissue."""
-    valid = mask & np.isfinite(depth) & (depth > 0)
+    # Work on the mask's bounding box only: the tissue covers a small part of the image.
+    x, y, w, h = cv2.boundingRect(mask.astype(np.uint8))
+    if w == 0 or h == 0:
+        return np.zeros((0, 3), dtype=np.float32)
+    depth = depth[y : y + h, x : x + w]
+    valid = mask[y : y + h, x : x + w] & (depth > 0)  # NaN compares false
     if not valid.any():
         return np.zeros((0, 3), dtype=np.float32)
     median_z = float(np.median(depth[valid][:: max(1, int(valid.sum()) // 4096)]))
     block = max(1, int(max_block_mm / (median_z / max(camera.fx, camera.fy))))
-    h, w = depth.shape
     gx, gy = _ray_grids(camera)
-    weight = valid.astype(np.float32)
+    gx, gy = gx[y : y + h, x : x + w], gy[y : y + h, x : x + w]
     z = np.where(valid, depth, np.float32(0))
     if block == 1:
-        return camera.backproject(depth, valid)
+        v, u = np.nonzero(valid)
+        zz = z[v, u]
+        return np.stack([gx[v, u] * zz, gy[v, u] * zz, zz], axis=1).astype(np.float32)
     size = (w // block, h // block)
+    if size[0] == 0 or size[1] == 0:
+        return np.zeros((0, 3), dtype=np.float32)
     crop = (slice(0, size[1] * block), slice(0, size[0] * block))
+    weight = valid[crop].astype(np.float32)
+    z = z[crop]
     # INTER_AREA with an integer factor is an exact block mean.
     sums = [
-        cv2.resize(np.ascontiguousarray(a[crop]), size, interpolation=cv2.INTER_AREA)
-        for a in (z * gx, z * gy, z, weight)
+        cv2.resize(a, size, interpolation=cv2.INTER_AREA) for a in (z * gx[crop], z * gy[crop], z, weight)
     ]
     x_s, y_s, z_s, frac = sums
     keep = frac >= 0.5
@@ -127,19 +140,29 @@ def remove_statistical_outliers(
 
     if len(points) <= neighbors:
         return points
-    dist, _ = cKDTree(points).query(points, k=neighbors + 1, workers=-1)
+    dist, _ = cKDTree(points).query(points, k=neighbors + 1)
     mean_dist = dist[:, 1:].mean(axis=1)
     return points[mean_dist <= mean_dist.mean() + std_ratio * mean_dist.std()]
 
 
-def _open3d_clean(points: np.ndarray, voxel_mm: float, neighbors: int, std_ratio: float) -> np.ndarray:
+@functools.lru_cache(maxsize=1)
+def _open3d():
+    """The open3d module, or None when it does not import (it needs libusb-1.0 on Linux)."""
     try:
         import open3d as o3d
-    except ImportError as exc:
+    except ImportError:
+        return None
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
+
+
+def _open3d_clean(points: np.ndarray, voxel_mm: float, neighbors: int, std_ratio: float) -> np.ndarray:
+    o3d = _open3d()
+    if o3d is None:
         raise BackendError(
-            f"cloud backend 'open3d' is not available ({exc}); on Debian/Ubuntu open3d needs "
-            "`apt-get install libusb-1.0-0`, or use backend='numpy'"
-        ) from exc
+            "cloud backend 'open3d' is not available (import failed; on Debian/Ubuntu it needs "
+            "`apt-get install libusb-1.0-0`); use backend='numpy'"
+        )
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
     cloud = cloud.voxel_down_sample(voxel_mm)
     if neighbors > 0 and len(cloud.points) > neighbors:
