@@ -134,11 +134,10 @@ def estimate_object_frame(
     if np.isfinite(final.score[0]):
         score = float(final.score[0])
 
-    # +Z toward the narrower end: the ellipse size decreases along +Z.
-    t, size = final.slab_t[0], final.slab_size[0]
-    ok = np.isfinite(t) & np.isfinite(size)
-    slope = np.polyfit(t[ok], size[ok], 1)[0] if ok.sum() >= 2 else 0.0
+    # +Z toward the narrower end: the slices' size decreases along +Z.
     z = axis / np.linalg.norm(axis)
+    t, size = slab_widths(local, z, view=centre)
+    slope = _robust_slope(t, size)
     if slope > 0:
         z = -z
     line_point = final.line_point[0]
@@ -166,12 +165,48 @@ def estimate_object_frame(
         score_deg=float(np.rad2deg(score)),
         diagnostics={
             "size_slope": float(slope),
-            "slab_t_mm": t[ok].tolist(),
-            "slab_size_mm": size[ok].tolist(),
+            "slab_t_mm": t.tolist(),
+            "slab_width_mm": size.tolist(),
             "candidates": len(candidates),
             "points_used": len(pts),
         },
     )
+
+
+def slab_widths(points: np.ndarray, axis: np.ndarray, view: np.ndarray, n_slabs: int = N_SLABS):
+    """Per slab along `axis`: (centre position along the axis, width of the slice across the line
+    of sight). The width seen across the viewing direction is the slice's silhouette width, the
+    size measure least affected by depth noise and by how much of the slice's ellipse the camera
+    sees (a fitted ellipse's axes vary by a millimetre from slab to slab on a partial arc, more than
+    a tapered tissue's taper over its length). `view` is the direction from the camera to the cloud."""
+    across = np.cross(axis, view)
+    if np.linalg.norm(across) < 1e-9:  # looking along the axis: any perpendicular will do
+        across = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    across /= np.linalg.norm(across)
+    t = points @ axis
+    w = points @ across
+    lo, hi = np.percentile(t, [1, 99])
+    edges = np.linspace(lo, hi, n_slabs + 1)
+    slab = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, n_slabs - 1)
+    centres, widths = [], []
+    for k in range(n_slabs):
+        sel = w[slab == k]
+        if len(sel) >= MIN_SLAB_POINTS:
+            lo_w, hi_w = np.percentile(sel, [2, 98])
+            centres.append((edges[k] + edges[k + 1]) / 2)
+            widths.append(hi_w - lo_w)
+    return np.array(centres), np.array(widths)
+
+
+def _robust_slope(t: np.ndarray, size: np.ndarray) -> float:
+    """Theil-Sen slope of size against t over the inner 80% of the slabs (the ends are the rounded
+    tip and the clamp or cut, which say nothing about the taper)."""
+    if len(t) < 4:
+        return 0.0
+    trim = max(1, len(t) // 10)
+    t, size = t[trim:-trim], size[trim:-trim]
+    i, j = np.triu_indices(len(t), k=1)
+    return float(np.median((size[j] - size[i]) / (t[j] - t[i])))
 
 
 def up_in_camera(quat_xyzw: np.ndarray, world_up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
