@@ -136,7 +136,7 @@ def bench_speed(rec: dict, repeats: int) -> None:
     depth_scared = make_depth_estimator("sgbm")
     t_min2, t_med2, _ = timed(lambda: depth_scared.disparity(left[0], right[0]), repeats, "d96")
     rows.append(
-        ("depth (sgbm, 0-96 px as SCARED)", t_min2, t_med2, 30.0, PAPER_DEPTH_FPS, "Stereo Any Video")
+        ("depth (sgbm, 0-96 px as SCARED)", t_min2, t_med2, 30.0, PAPER_DEPTH_FPS, "Stereo Any Video", "d96")
     )
 
     segmenter = make_segmenter("colortrack")
