@@ -400,9 +400,10 @@ def _normalize(a: np.ndarray) -> np.ndarray:
 
 def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
           shininess: np.ndarray | float, light: Light, specular_tint: np.ndarray | None = None,
-          wrap: float = 0.35, ambient: float = 0.04) -> np.ndarray:
+          wrap: float = 0.35, ambient: float = 0.04, glint: float = 0.0) -> np.ndarray:
     """Linear RGB radiance (3, P) of surface points (3, P) with unit normals (3, P) and albedo (3, P)
-    lit by a point light near the camera."""
+    lit by a point light near the camera. `glint` adds a sharp second lobe where the surface is
+    wettest (the small saturated sparkles of a moist tissue film)."""
     lp = light.position.astype(np.float32)[:, None]
     to_light = lp - position
     dist2 = _dot(to_light, to_light)
@@ -412,7 +413,10 @@ def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: n
     diffuse = np.clip((ndl + np.float32(wrap)) / np.float32(1 + wrap), 0, None)
     h = _normalize(l + view)
     ndh = np.clip(_dot(normal, h), np.float32(1e-6), np.float32(1.0))
-    spec = gloss * np.exp(shininess * np.log(ndh)) * (ndl > 0)
+    log_ndh = np.log(ndh)
+    spec = gloss * np.exp(shininess * log_ndh) * (ndl > 0)
+    if glint:
+        spec = spec + np.float32(glint) * gloss * gloss * np.exp(np.float32(8.0) * shininess * log_ndh)
     falloff = np.float32(light.intensity) / dist2
     tint = np.ones((3, 1), np.float32) if specular_tint is None else np.asarray(specular_tint, np.float32)[:, None]
     return albedo * (diffuse * falloff + np.float32(ambient)) + (spec * falloff) * tint
@@ -438,23 +442,26 @@ def vignette(camera: PinholeCamera, strength: float = 1.0) -> np.ndarray:
 
 class NoisePool:
     """Sensor noise: a few pre-drawn Gaussian noise fields, cropped at random offsets per frame (much
-    cheaper than drawing a fresh field, and indistinguishable for our purposes)."""
+    cheaper than drawing a fresh field, and indistinguishable for our purposes). Each field is kept as
+    its positive and negative parts so that adding it is two saturating uint8 operations."""
 
     def __init__(self, rng: np.random.Generator, height: int, width: int, sigma: float, count: int = 4):
         self.h, self.w = height, width
         pad = 64
-        self.fields = [np.round(rng.normal(0, sigma, (height + pad, width + pad, 3))).astype(np.int16)
-                       for _ in range(count)]
+        self.fields = []
+        for _ in range(count):
+            n = np.round(rng.normal(0, sigma, (height + pad, width + pad, 3)))
+            self.fields.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
         self.pad = pad
 
-    def draw(self, rng: np.random.Generator) -> np.ndarray:
-        f = self.fields[int(rng.integers(len(self.fields)))]
+    def draw(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        pos, neg = self.fields[int(rng.integers(len(self.fields)))]
         y, x = rng.integers(0, self.pad, 2)
-        return f[y:y + self.h, x:x + self.w]
+        return pos[y:y + self.h, x:x + self.w], neg[y:y + self.h, x:x + self.w]
 
 
-def finish(img: np.ndarray, noise: np.ndarray, blur_sigma: float) -> np.ndarray:
-    """Display image (uint8) with optical blur and sensor noise."""
+def finish(img: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma: float) -> np.ndarray:
+    """Display image (uint8) with optical blur and sensor noise (saturating)."""
     if blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
-    return cv2.add(img, noise, dtype=cv2.CV_8U)
+    return cv2.subtract(cv2.add(img, noise[0]), noise[1])

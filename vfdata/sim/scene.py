@@ -198,7 +198,8 @@ class SceneRenderer:
         albedo, extra = self.bed_texture.sample(bed_frag.attrs[0], bed_frag.attrs[1])
         tangent = np.tile(self.r_co[:, 2:3].astype(np.float32), (1, len(bed_frag.flat)))
         normal = bumped_normals(bed_frag.normal, tangent, extra[1], extra[2], 3.0 * spec.bump_strength)
-        rad = shade(bed_frag.position(cam), normal, albedo, extra[0], spec.bed_palette.shininess, light)
+        rad = shade(bed_frag.position(cam), normal, albedo, extra[0], spec.bed_palette.shininess, light,
+                    glint=3.0)
         color[bed_frag.flat] = tone_map(rad * vig[bed_frag.flat]).T
         color[fix_frag.flat] = self._shade_materials(fix_frag, cam, light, vig[fix_frag.flat]).T
         depth[~np.isfinite(depth)] = 0.0
@@ -234,6 +235,38 @@ class SceneRenderer:
         tangent = np.concatenate([tangent.reshape(-1, 3), tangent[-1]])
         return Mesh(verts, self.tube_quads, normals, np.concatenate([self.tube_uv, tangent], axis=1))
 
+    def _shaft(self, p0: np.ndarray, p1: np.ndarray, radius: float = 4.2, n_around: int = 20,
+               pieces: int = 10) -> Mesh:
+        """The instrument shaft: a cylinder cut into pieces that get longer away from the tip (so the
+        near-plane clipping of quads loses little of it near the camera), capped at the tip."""
+        if not hasattr(self, "_shaft_local"):
+            t = np.linspace(0.0, 1.0, pieces + 1) ** 2
+            ang = 2 * np.pi * np.arange(n_around) / n_around
+            cos, sin = np.repeat(np.cos(ang)[None], pieces + 1, 0), np.repeat(np.sin(ang)[None], pieces + 1, 0)
+            along = np.repeat(t[:, None], n_around, 1)
+            local = np.stack([cos.ravel(), sin.ravel(), along.ravel()], 1)
+            local = np.concatenate([local, [[0.0, 0.0, 0.0]]])  # cap centre
+            quads = grid_quads(pieces + 1, n_around, wrap_cols=True)
+            k = np.arange(n_around)
+            cap = np.stack([k, (k + 1) % n_around, np.full(n_around, len(local) - 1),
+                            np.full(n_around, len(local) - 1)], 1)
+            self._shaft_local = (local, np.concatenate([quads, cap]))
+        local, quads = self._shaft_local
+        axis = p1 - p0
+        length = np.linalg.norm(axis)
+        a = axis / length
+        ref = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
+        u = np.cross(a, ref)
+        u /= np.linalg.norm(u)
+        v = np.cross(a, u)
+        radial = local[:, :1] * u + local[:, 1:2] * v
+        verts = p0 + radius * radial + length * local[:, 2:3] * a
+        normals = radial.copy()
+        normals[-1] = -a
+        # The cap's ring shares the first ring's vertices; its quads use the side normals there,
+        # which is close enough for a 4 mm disc seen mostly edge-on.
+        return Mesh(verts, quads, normals, np.full((len(verts), 1), float(SHAFT)))
+
     def instrument_mesh(self, grasp_o: np.ndarray, twist_rad: float, jaw_rad: float) -> Mesh:
         """Grasper (jaws, wrist, shaft) in the left camera frame, for a grasp point (object frame),
         a twist about the tube axis and a jaw opening angle."""
@@ -255,12 +288,8 @@ class SceneRenderer:
             parts.append(box_mesh(centre, np.stack([d, nn, b], axis=1), np.array([6.2, 1.0, 1.9]), STEEL,
                                   taper=0.6))
         wrist_end = hinge + 9.0 * shaft_dir
-        parts.append(cylinder_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.2, 20, STEEL, True, False))
-        far = spec.rcm_o_mm + 40.0 * shaft_dir
-        pieces = 10
-        edges = wrist_end + (far - wrist_end) * (np.linspace(0, 1, pieces + 1) ** 2)[:, None]
-        for k in range(pieces):
-            parts.append(cylinder_mesh(edges[k], edges[k + 1], 4.2, 24, SHAFT, k == 0, False))
+        parts.append(cylinder_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.2, 16, STEEL, True, False))
+        parts.append(self._shaft(wrist_end, spec.rcm_o_mm + 40.0 * shaft_dir))
         mesh = Mesh.concat(parts)
         return mesh.transformed(self.r_co, self.t_co)
 
@@ -288,7 +317,8 @@ class SceneRenderer:
             color = static.color.copy()
             albedo, extra = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
             normal = bumped_normals(t_frag.normal, t_frag.attrs[2:5], extra[1], extra[2], spec.bump_strength)
-            rad = shade(t_frag.position(cam), normal, albedo, extra[0], spec.tube_palette.shininess, light)
+            rad = shade(t_frag.position(cam), normal, albedo, extra[0], spec.tube_palette.shininess, light,
+                        glint=3.0)
             color[t_frag.flat] = tone_map(rad * static.vignette[t_frag.flat]).T
             color[i_frag.flat] = self._shade_materials(i_frag, cam, light, static.vignette[i_frag.flat]).T
             img = finish(color.reshape(cam.height, cam.width, 3), self.noise.draw(self.rng), spec.blur_sigma)

@@ -12,7 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 MOVE_KINDS = ("stretch", "lift", "lateral", "combined", "twist", "return")
-_MOVE_WEIGHTS = np.array([0.22, 0.18, 0.2, 0.22, 0.08, 0.10])
+# Moves are drawn without replacement from this bag (refilled when empty) so that every recording
+# exercises every direction: lateral pulls alternate sides, combined pulls come twice per round.
+_MOVE_BAG = ("stretch", "lift", "lateral", "lateral", "combined", "combined", "twist", "return")
 JAW_OPEN_RAD = np.radians(30.0)
 
 
@@ -86,6 +88,8 @@ def plan_trajectory(rng: np.random.Generator, duration_s: float, limits: MotionL
     segments: list[Segment] = []
     t, p, twist = 0.0, np.zeros(3), 0.0
     since_release = 0.0
+    bag: list[str] = []
+    lateral_side = 1.0 if rng.random() < 0.5 else -1.0
 
     def add(duration: float, p1: np.ndarray, twist1: float, jaw0: float, jaw1: float, kind: str) -> None:
         nonlocal t, p, twist
@@ -114,7 +118,9 @@ def plan_trajectory(rng: np.random.Generator, duration_s: float, limits: MotionL
             add(dur, p, twist, 0.0, 0.0, "hold")
             since_release += dur
             continue
-        kind = MOVE_KINDS[rng.choice(len(MOVE_KINDS), p=_MOVE_WEIGHTS)]
+        if not bag:
+            bag = [_MOVE_BAG[i] for i in rng.permutation(len(_MOVE_BAG))]
+        kind = bag.pop()
         target = p * rng.uniform(0.0, 0.5)
         twist1 = twist * rng.uniform(0.0, 0.6)
         if kind == "stretch":
@@ -122,9 +128,14 @@ def plan_trajectory(rng: np.random.Generator, duration_s: float, limits: MotionL
         elif kind == "lift":
             target[0] = hi[0] * rng.uniform(0.5, 1.0) if rng.random() < 0.75 else lo[0] * rng.uniform(0.5, 1)
         elif kind == "lateral":
-            target[1] = (hi[1] if rng.random() < 0.5 else lo[1]) * rng.uniform(0.5, 1.0)
+            target[1] = (hi[1] if lateral_side > 0 else lo[1]) * rng.uniform(0.6, 1.0)
+            lateral_side = -lateral_side
         elif kind == "combined":
+            # Inside the ellipsoid through the reach limits: the box corners would stretch the
+            # tissue far past what a surgeon would ask of it.
             target = rng.uniform(lo, hi)
+            scale = np.sqrt(np.sum((target / np.where(target >= 0, hi, -lo)) ** 2))
+            target = target / max(1.0, scale)
         elif kind == "twist":
             twist1 = rng.uniform(-max_twist, max_twist)
         else:  # return
