@@ -123,6 +123,26 @@ def test_independent_reader_rosbags(raw, converted_png):
         assert k == len(wrench_rows)
 
 
+def test_mcap_library_reads_and_validates_ours(raw, converted_png):
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader
+
+    with open(converted_png, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == sum(
+            summary.statistics.channel_message_counts.values())
+        assert {c.topic for c in summary.channels.values()} == set(layout.RECORDING_TOPICS)
+        assert all(i.compression == "zstd" for i in summary.chunk_indexes)
+        times = [m.log_time for _, c, m in reader.iter_messages(topics=[layout.WRENCH])]
+        assert times == [int(r["timestamp_ns"]) for r in _read_csv(raw / "force.csv")]
+        assert reader.get_header().profile == "ros2"
+        assert list(reader.iter_metadata())[0].name == layout.RECORDING_METADATA
+    with open(converted_png, "rb") as f:
+        records = list(StreamReader(f, validate_crcs=True).records)
+    assert sum(type(r).__name__ == "Message" for r in records) == summary.statistics.message_count
+
+
 def test_force_at_interpolates_and_respects_gaps(converted_png):
     rec = Recording.open(converted_png)
     t = rec.force.times_ns
