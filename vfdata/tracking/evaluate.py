@@ -67,6 +67,19 @@ class SimRecording:
         raw = cv2.imread(str(self.folder / "ground_truth/depth" / f"{frame:06d}.png"), cv2.IMREAD_UNCHANGED)
         return raw.astype(np.float32) / 10.0  # stored in 0.1 mm, 0 = none
 
+    def truly_visible(self, points: np.ndarray, frame: int) -> np.ndarray:
+        """(N,) bool: true positions (N, 3) mm that the camera sees at `frame`: inside the tissue mask
+        and at the depth of the rendered surface there (the simulator's own visibility test)."""
+        depth = self.depth_mm(frame)
+        uv = self.camera.project(points)
+        inside = self.camera.in_mask(points, self.mask(frame))
+        u = np.floor(uv[inside, 0] + 0.5).astype(np.int64)
+        v = np.floor(uv[inside, 1] + 0.5).astype(np.int64)
+        z = points[inside, 2]
+        seen = np.zeros(len(points), dtype=bool)
+        seen[inside] = np.abs(depth[v, u] - z) < 0.3 + 0.01 * z
+        return seen
+
     def cloud(self, frame: int, num_points: int = 20000, seed: int = 0) -> np.ndarray:
         """The tissue cloud (M <= num_points, 3) mm: masked ground-truth depth, back-projected."""
         cloud = self.camera.backproject(self.depth_mm(frame), self.mask(frame))
@@ -145,12 +158,15 @@ def run_tracker(
 
 
 def score(run: TrackingRun, rec: SimRecording) -> dict:
-    """Error against ground truth over every frame and point the tracker reports, and coverage / NNI
+    """Error against ground truth over every frame and point the tracker reports (and, as `seen_*`,
+    over those whose true position is in view: in the mask and not behind another surface), and coverage / NNI
     at the force peaks (at every 30th frame when the clip has no peak). Frame 0 of the run holds the
     reference selection, the same for every tracker."""
     count = len(run.points)
     truth, normals = ground_truth_tracks(run.points[0], rec.material_points[:count], rec.material_normals[:count])
     error = metrics.tracking_error(run.points, truth, normals)
+    seen = np.stack([rec.truly_visible(truth[f], f) for f in range(count)])
+    error_seen = metrics.tracking_error(run.points, truth, normals, valid=seen)
     peaks = metrics.force_peaks(rec.force_n[:count])
     judged = peaks if len(peaks) else np.arange(30, count, 30)
     cover, nni = [], []
@@ -160,6 +176,7 @@ def score(run: TrackingRun, rec: SimRecording) -> dict:
     lost = float(np.mean(~np.isfinite(run.points[-1]).all(axis=1)))
     return {
         **error.as_dict(),
+        **{f"seen_{k}": v for k, v in error_seen.as_dict().items()},
         "coverage": float(np.mean(cover)) if cover else float("nan"),
         "nni": float(np.nanmean(nni)) if nni else float("nan"),
         "peaks": len(peaks),

@@ -62,8 +62,10 @@ class TrackerOptions:
     hidden_layers: int = 2
     omega_0: float = 30.0
     output_scale_mm: float = 10.0  # SIREN output unit, in mm of displacement
+    input_extent: float = 1.0  # reference positions are scaled into [-input_extent, input_extent]
     llr_regularization: float = 1e-3
-    llr_relative: bool = True  # measure LLR residuals from their value on the frame the weights come from
+    llr_relative: bool = True
+    visibility_every_iteration: bool = True  # measure LLR residuals from their value on the frame the weights come from
     flow_max_forward_backward_px: float = 1.0
     reference_image: np.ndarray | None = None  # geometry+: the left image of the reference frame
 
@@ -109,7 +111,9 @@ class GeometryTracker:
         torch.manual_seed(seed)
         self._net = Siren(3, 3, opt.hidden_features, opt.hidden_layers, opt.omega_0)
         self._optimizer = torch.optim.Adam(self._net.parameters(), lr=opt.learning_rate)
-        self._input = torch.from_numpy(((self.reference - center) / half_extent).astype(np.float32))
+        self._input = torch.from_numpy(
+            ((self.reference - center) * (opt.input_extent / half_extent)).astype(np.float32)
+        )
         self._reference_t = torch.from_numpy(self.reference.astype(np.float32))
         with torch.no_grad():
             # Subtracting the initial output makes the field start at zero displacement exactly while
@@ -166,17 +170,18 @@ class GeometryTracker:
         prev_neighbours = torch.from_numpy(prev_neighbours)
         prev_rest = self._rest_residual(torch.from_numpy(previous).float(), prev_neighbours, prev_weights)
 
-        use_chamfer = len(cloud) > 0 and visible.any()
-        if use_chamfer:
+        if len(cloud) > 0:
             tree = cKDTree(cloud, balanced_tree=False, compact_nodes=False)
             cloud_t = torch.from_numpy(cloud.astype(np.float32))
-            visible_t = torch.from_numpy(np.flatnonzero(visible))
 
         for _ in range(opt.iterations):
             points = self._positions()
             loss = points.new_zeros(())
-            if use_chamfer:
-                moving = points[visible_t]
+            if opt.visibility_every_iteration:
+                # Points entering the mask as they catch up with the tissue join the Chamfer term.
+                visible = self.visibility(points.detach().numpy(), mask)
+            if len(cloud) > 0 and visible.any():
+                moving = points[torch.from_numpy(np.flatnonzero(visible))]
                 _, nearest = tree.query(moving.detach().numpy())
                 target = cloud_t[torch.from_numpy(nearest)]
                 loss = loss + opt.lambda_chamfer * (moving - target).square().sum(dim=1).mean()
