@@ -125,14 +125,18 @@ def estimate_object_frame(
     # of a round tube are circles, and a circle's centre is well defined from the partial arc the
     # camera sees, where a free ellipse can slide along the arc (biased by the changing viewpoint
     # along the tissue).
+    # The centreline is refitted robustly: slices at the ends, where an instrument or the clamp
+    # touches the tissue, carry depth that bled over from the occluder and bend a plain fit.
+    line_point = fits[chunk].line_point[within]
     for _ in range(refine):
         fit = _slice_and_fit(local, axis[None, :], circles=True)
-        if not np.isfinite(fit.score[0]):
+        centres = fit.centres[0]
+        centres = centres[np.isfinite(centres).all(axis=1)]
+        if len(centres) < MIN_SLABS:
             break
-        axis = fit.direction[0]
-    final = _slice_and_fit(local, axis[None, :], circles=refine > 0)
-    if np.isfinite(final.score[0]):
-        score = float(final.score[0])
+        new_axis, line_point = robust_line(centres)
+        axis = new_axis if new_axis @ axis >= 0 else -new_axis
+        score = float(np.arccos(min(1.0, abs(float(fit.direction[0] @ axis)))))
 
     # +Z toward the narrower end: the slices' size decreases along +Z.
     z = axis / np.linalg.norm(axis)
@@ -140,7 +144,6 @@ def estimate_object_frame(
     slope = _robust_slope(t, size)
     if slope > 0:
         z = -z
-    line_point = final.line_point[0]
     proj = (all_pts - centre) @ z
     origin = centre + line_point + (np.percentile(proj, 2) - line_point @ z) * z
 
@@ -171,6 +174,23 @@ def estimate_object_frame(
             "points_used": len(pts),
         },
     )
+
+
+def robust_line(centres: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Line (unit direction, point) through (K, 3) points by PCA, refitted without the points farther
+    from the line than 2.5 times the median distance (and 0.3 mm)."""
+    keep = np.ones(len(centres), bool)
+    for _ in range(iterations):
+        point = centres[keep].mean(axis=0)
+        _vals, vecs = np.linalg.eigh(np.cov((centres[keep] - point).T))
+        direction = vecs[:, -1]
+        offset = centres - point
+        dist = np.linalg.norm(offset - np.outer(offset @ direction, direction), axis=1)
+        new_keep = dist <= max(2.5 * np.median(dist[keep]), 0.3)
+        if new_keep.sum() < MIN_SLABS or (new_keep == keep).all():
+            break
+        keep = new_keep
+    return direction, point
 
 
 def slab_widths(points: np.ndarray, axis: np.ndarray, view: np.ndarray, n_slabs: int = N_SLABS):
@@ -245,6 +265,7 @@ class _Fit:
     extent: np.ndarray
     slab_t: np.ndarray
     slab_size: np.ndarray
+    centres: np.ndarray  # (C, K, 3) ellipse/circle centres in 3D, NaN where the slab is unusable
 
 
 def _basis(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -340,6 +361,7 @@ def _slice_and_fit(points: np.ndarray, c: np.ndarray, circles: bool = False) -> 
         extent=extent,
         slab_t=t_good,
         slab_size=np.where(good, size, np.nan),
+        centres=np.where(good[..., None], centres, np.nan),
     )
 
 
