@@ -29,7 +29,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from rawfixtures import make_raw  # noqa: E402
 
-from vfdata.conversion.raw_folder import ConvertOptions, _ordered_map, convert_raw_folder  # noqa: E402
+from vfdata.conversion.ordered_map import ordered_map  # noqa: E402
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder  # noqa: E402
 from vfdata.recording import Recording, layout  # noqa: E402
 from vfdata.recording.messages import CompressedImage, WrenchStamped  # noqa: E402
 from vfdata.recording.writer import McapWriter  # noqa: E402
@@ -67,7 +68,7 @@ def bench_conversion(workdir: Path, frames: int) -> None:
     for _ in range(3):
         t = time.perf_counter()
         with ThreadPoolExecutor(2) as pool:
-            for _ in _ordered_map(pool, bare, iter(files), window=8):
+            for _ in ordered_map(pool, bare, iter(files), window=8):
                 pass
         bare_times.append(time.perf_counter() - t)
         out = workdir / "conv.mcap"
@@ -75,8 +76,10 @@ def bench_conversion(workdir: Path, frames: int) -> None:
         convert_raw_folder(src, out, overwrite=True, options=ConvertOptions(progress=False, workers=2))
         ours_times.append(time.perf_counter() - t)
     b, o = statistics.median(bare_times), statistics.median(ours_times)
-    print(f"conversion: {frames / o:.1f} stereo frames/s vs bare bound {frames / b:.1f} -> ratio {b / o:.2f} "
-          f"(target >= 0.7; median of 3, {frames} frames 640x512, 1 kHz force)")
+    print(
+        f"conversion: {frames / o:.1f} stereo frames/s vs bare bound {frames / b:.1f} -> ratio {b / o:.2f} "
+        f"(target >= 0.7; median of 3, {frames} frames 640x512, 1 kHz force)"
+    )
 
     rec = Recording.open(out)
     payloads = [rec.frame_images(i) for i in range(rec.num_frames)]
@@ -94,8 +97,10 @@ def bench_conversion(workdir: Path, frames: int) -> None:
             pass
         ours_times.append(time.perf_counter() - t)
     b, o = statistics.median(bare_times), statistics.median(ours_times)
-    print(f"read+decode all frames: {frames / o:.1f} frames/s vs bare JPEG decoding {frames / b:.1f} -> "
-          f"ratio {b / o:.2f} (target >= 0.7; one thread)")
+    print(
+        f"read+decode all frames: {frames / o:.1f} frames/s vs bare JPEG decoding {frames / b:.1f} -> "
+        f"ratio {b / o:.2f} (target >= 0.7; one thread)"
+    )
 
 
 def write_long(path: Path, seconds: float, jpeg_pair: tuple[bytes, bytes], unique: bool = False) -> None:
@@ -111,7 +116,9 @@ def write_long(path: Path, seconds: float, jpeg_pair: tuple[bytes, bytes], uniqu
         for k in range(n_force):
             stamp = t0 + k * 1_000_000
             v = values[k]
-            w.write(layout.WRENCH, WrenchStamped(stamp, "force_sensor", (v[0], v[1], v[2]), (v[3], v[4], v[5])))
+            w.write(
+                layout.WRENCH, WrenchStamped(stamp, "force_sensor", (v[0], v[1], v[2]), (v[3], v[4], v[5]))
+            )
             if k % 33 == 0:
                 left, right = jpeg_pair
                 if unique:
@@ -131,8 +138,10 @@ def bench_force_and_clips(workdir: Path) -> None:
         t = time.perf_counter()
         force = Recording.open(path).force
         times.append(time.perf_counter() - t)
-    print(f"force series of a 3-minute recording ({len(force.times_ns)} samples): "
-          f"{statistics.median(times) * 1e3:.0f} ms median of 5, open included (target <= 500 ms)")
+    print(
+        f"force series of a 3-minute recording ({len(force.times_ns)} samples): "
+        f"{statistics.median(times) * 1e3:.0f} ms median of 5, open included (target <= 500 ms)"
+    )
 
     rec = Recording.open(path)
     rng = np.random.default_rng(0)
@@ -141,15 +150,17 @@ def bench_force_and_clips(workdir: Path) -> None:
         start = int(rng.integers(0, rec.num_frames - 16))
         t = time.perf_counter()
         images = [rec.frame_images(i) for i in range(start, start + 16)]
-        rec.force_at(rec.frame_times_ns[start:start + 16])
+        rec.force_at(rec.frame_times_ns[start : start + 16])
         fetch.append(time.perf_counter() - t)
         t = time.perf_counter()
         for i in range(start, start + 16):
             rec.frame(i)
         decode.append(time.perf_counter() - t)
     del images
-    print(f"random 16-frame clip: {statistics.median(fetch) * 1e3:.2f} ms compressed images + force "
-          f"(target <= 5 ms); {statistics.median(decode) * 1e3:.1f} ms with all 32 images decoded to BGR")
+    print(
+        f"random 16-frame clip: {statistics.median(fetch) * 1e3:.2f} ms compressed images + force "
+        f"(target <= 5 ms); {statistics.median(decode) * 1e3:.1f} ms with all 32 images decoded to BGR"
+    )
 
 
 def bench_streaming_memory(workdir: Path, gigabytes: float) -> None:
@@ -173,20 +184,26 @@ def bench_streaming_memory(workdir: Path, gigabytes: float) -> None:
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
     elapsed = time.perf_counter() - t
     nbytes, rss_kb = (int(v) for v in out.stdout.split())
-    print(f"streaming a {size / 1e9:.2f} GB file (all {nbytes / 1e9:.2f} GB of images + the force series): "
-          f"peak RSS {rss_kb / 1024:.0f} MB (target <= 500 MB), {size / 1e6 / elapsed:.0f} MB/s")
+    print(
+        f"streaming a {size / 1e9:.2f} GB file (all {nbytes / 1e9:.2f} GB of images + the force series): "
+        f"peak RSS {rss_kb / 1024:.0f} MB (target <= 500 MB), {size / 1e6 / elapsed:.0f} MB/s"
+    )
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--big-gb", type=float, default=2.0, help="0 skips the streaming-memory figure")
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/vf_bench_recording"))
     args = parser.parse_args()
     shutil.rmtree(args.workdir, ignore_errors=True)
     args.workdir.mkdir(parents=True)
-    print(f"cores: {os.cpu_count()}; peak RSS of this process so far "
-          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    print(
+        f"cores: {os.cpu_count()}; peak RSS of this process so far "
+        f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB"
+    )
     bench_conversion(args.workdir, args.frames)
     bench_force_and_clips(args.workdir)
     if args.big_gb > 0:

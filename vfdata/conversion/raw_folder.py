@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.calibration import StereoCalibration
+from vfdata.conversion.ordered_map import ordered_map
 from vfdata.errors import InputError
 from vfdata.recording import layout
 from vfdata.recording.messages import (
@@ -396,7 +397,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
         writer.write(layout.TF_STATIC, stereo_tf(calib, int(frame_ns[0])))
         with ThreadPoolExecutor(max(1, options.workers)) as pool:
             i = -1
-            encoded = _ordered_map(pool, encode, iter(source), window=4 * max(1, options.workers))
+            encoded = ordered_map(pool, encode, iter(source), window=4 * max(1, options.workers))
             bar = tqdm(total=len(frame_ns), desc=f"convert {src.name}", unit="frame", disable=not options.progress)
             for i, (left_bytes, right_bytes) in enumerate(encoded):
                 stamp = int(frame_ns[i])
@@ -440,14 +441,3 @@ def _write_pose(writer: McapWriter, pose, start: int, stop: int) -> None:
         v = values[k]
         writer.write(layout.ECM_POSE, PoseStamped(int(stamps[k]), layout.WORLD_FRAME, (v[0], v[1], v[2]),
                                                   (v[3], v[4], v[5], v[6])))
-
-
-def _ordered_map(pool: ThreadPoolExecutor, fn, items, window: int):
-    """pool.map with at most `window` items in flight, so a long video is never held in memory."""
-    pending = []
-    for item in items:
-        pending.append(pool.submit(fn, item))
-        if len(pending) >= window:
-            yield pending.pop(0).result()
-    for future in pending:
-        yield future.result()
