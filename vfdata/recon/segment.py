@@ -458,6 +458,16 @@ class ColorTrackSegmenter(Segmenter):
         outside = valid & ~carried
         evidence[outside & (jump > s.depth_jump * median)] = -s.depth_penalty
         evidence[outside & (np.abs(filled - median) > 2 * spread)] = -s.depth_penalty
+        # Locally: a pixel outside must lie near the depth of the nearest tissue pixel (the tissue
+        # bed behind the silhouette is further away, the instrument in front nearer).
+        source = (~inside).astype(np.uint8)
+        _dist, labels = cv2.distanceTransformWithLabels(
+            source, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+        )
+        ys, xs = np.nonzero(inside)
+        # Labels number the zero pixels of `source` (the tissue pixels) in row-major order from 1.
+        nearest_depth = np.concatenate([[0.0], filled[ys, xs]]).astype(np.float32)[labels]
+        evidence[outside & (np.abs(filled - nearest_depth) > s.depth_jump * median * 2)] = -s.depth_penalty
         return evidence
 
     def _clean(self, mask: np.ndarray, seed: np.ndarray | None, prompt_mask: np.ndarray | None) -> np.ndarray:
