@@ -18,10 +18,14 @@ Steps (docs/experiments.md):
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
+import logging
 import os
+import sys
 import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -208,6 +212,26 @@ def _train_module():
     return module
 
 
+@contextlib.contextmanager
+def _quiet_lightning():
+    """Lightning's start-up chatter (accelerator lines, tips) off, and no command line for the CLI to
+    read besides the arguments it is given."""
+    loggers = [logging.getLogger(name) for name in ("lightning.pytorch", "lightning.fabric", "lightning")]
+    levels = [lg.level for lg in loggers]
+    argv = sys.argv
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.WARNING)
+        sys.argv = argv[:1]
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*(LeafSpec|log_every_n_steps|num_workers).*")
+            yield
+    finally:
+        sys.argv = argv
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
 def clip_frames(parts: list[dict]) -> dict[str, np.ndarray]:
     """Per-frame test results from overlapping clips: each frame once, from the clip in which it had
     the most history (the latest position), as an online causal estimator would give it. `parts`
@@ -271,12 +295,15 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     if options.epochs is not None:
         args.append(f"--trainer.max_epochs={options.epochs}")
     started = time.perf_counter()
-    cli = train.ForceCLI(ForceRegressor, L.LightningDataModule, subclass_mode_data=True,
-                         save_config_kwargs={"overwrite": True}, run=False, args=args)
-    # Reuse the last checkpoint of an interrupted run of this variant and seed.
-    last = run_dir / "checkpoints" / "last.ckpt"
-    cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=str(last) if last.is_file() else None)
-    train_seconds = time.perf_counter() - started
+    with _quiet_lightning():
+        cli = train.ForceCLI(ForceRegressor, L.LightningDataModule, subclass_mode_data=True,
+                             save_config_kwargs={"overwrite": True}, run=False, args=args)
+        # Reuse the last checkpoint of an interrupted run of this variant and seed.
+        last = run_dir / "checkpoints" / "last.ckpt"
+        cli.datamodule.setup("fit")  # decoding (or the cache) apart from the training time
+        setup_seconds = time.perf_counter() - started
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=str(last) if last.is_file() else None)
+    train_seconds = time.perf_counter() - started - setup_seconds
     best = cli.trainer.checkpoint_callback.best_model_path or str(train.best_checkpoint(run_dir / "checkpoints"))
 
     regressor = ForceRegressor.load(best)
@@ -289,7 +316,8 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     summary = {
         "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config),
         "checkpoint": str(Path(best).resolve()), "epochs": cli.trainer.current_epoch,
-        "train_seconds": round(train_seconds, 1), "test_frames": int(len(predictions["true"])),
+        "setup_seconds": round(setup_seconds, 1), "train_seconds": round(train_seconds, 1),
+        "test_frames": int(len(predictions["true"])),
         "force_fps": force_fps, "torch_threads": threads,
         "pooled": metrics["pooled"], "mean": metrics["mean"], "std": metrics["std"],
         "groups": {str(k): v for k, v in metrics["groups"].items()},
