@@ -27,7 +27,7 @@ class TissueKind:
     tip_ratio: tuple[float, float]          # free-end radius / clamped-end radius
     n_rings: int
     n_around: int
-    modulus_mpa: tuple[float, float]
+    axial_stiffness_n_mm: tuple[float, float]  # nominal pull stiffness E * wall * 2 pi r / L; sets E
     wall_mm: tuple[float, float]
     density_kg_m3: float
     stiffening: tuple[float, float]
@@ -54,10 +54,10 @@ GLOVE = TissueKind(
     tip_ratio=(0.8, 0.9),
     n_rings=16,
     n_around=12,
-    modulus_mpa=(0.16, 0.22),
+    axial_stiffness_n_mm=(0.24, 0.30),
     wall_mm=(1.4, 1.6),
     density_kg_m3=1050.0,
-    stiffening=(5.0, 8.0),
+    stiffening=(3.0, 5.0),
     compression_ratio=0.3,
     kelvin_voigt_s=(0.03, 0.06),
     maxwell_ratio=(0.25, 0.4),
@@ -65,7 +65,7 @@ GLOVE = TissueKind(
     kind_factors=(1.0, 1.0, 0.5, 3.0, 0.5, 2.0),
     grasp_fraction=(0.74, 0.82),
     reach_lo=(-0.15, -0.42, -0.05),
-    reach_hi=(0.45, 0.42, 0.12),
+    reach_hi=(0.45, 0.42, 0.1),
     camera_distance_mm=(84.0, 96.0),
     palette=Palette(light=(0.80, 0.58, 0.46), dark=(0.66, 0.40, 0.32), vessel=(0.42, 0.07, 0.09),
                     blotch=(0.75, 0.36, 0.34), vessel_count=5, gloss=0.55, shininess=70.0, grain=0.22),
@@ -81,18 +81,18 @@ COLON = TissueKind(
     tip_ratio=(0.65, 0.8),
     n_rings=20,
     n_around=14,
-    modulus_mpa=(0.11, 0.15),
+    axial_stiffness_n_mm=(0.21, 0.26),
     wall_mm=(2.0, 3.0),
     density_kg_m3=1040.0,
-    stiffening=(6.0, 10.0),
+    stiffening=(3.0, 6.0),
     compression_ratio=0.15,
     kelvin_voigt_s=(0.06, 0.12),
     maxwell_ratio=(0.4, 0.7),
     maxwell_tau_s=(1.0, 3.0),
     kind_factors=(1.0, 1.0, 0.6, 4.5, 0.5, 4.0),
     grasp_fraction=(0.72, 0.82),
-    reach_lo=(-0.1, -0.38, -0.03),
-    reach_hi=(0.42, 0.38, 0.05),
+    reach_lo=(-0.1, -0.34, -0.03),
+    reach_hi=(0.36, 0.34, 0.04),
     camera_distance_mm=(132.0, 145.0),
     palette=Palette(light=(0.74, 0.36, 0.34), dark=(0.46, 0.10, 0.12), vessel=(0.30, 0.02, 0.05),
                     blotch=(0.78, 0.52, 0.42), vessel_count=14, gloss=0.8, shininess=80.0, grain=0.16),

@@ -87,8 +87,12 @@ def build_recording(plan: RecordingPlan, seed: int, frames: int | None = None, w
     length = u(kind.length_mm)
     radius = u(kind.diameter_mm) / 2
     shape = TubeShape(length, radius, radius * u(kind.tip_ratio), kind.n_rings, kind.n_around)
+    # The membrane modulus follows from the drawn pull stiffness of the tube (E * wall * 2 pi r / L),
+    # so that tissue size and wall thickness do not scale the forces on their own.
+    wall = u(kind.wall_mm)
+    modulus = u(kind.axial_stiffness_n_mm) * length / (wall * 2 * np.pi * radius)
     material = Material(
-        modulus_mpa=u(kind.modulus_mpa), wall_mm=u(kind.wall_mm), density_kg_m3=kind.density_kg_m3,
+        modulus_mpa=modulus, wall_mm=wall, density_kg_m3=kind.density_kg_m3,
         stiffening=u(kind.stiffening), compression_ratio=kind.compression_ratio,
         kelvin_voigt_s=u(kind.kelvin_voigt_s), maxwell_ratio=u(kind.maxwell_ratio),
         maxwell_tau_s=u(kind.maxwell_tau_s), kind_factors=kind.kind_factors,
