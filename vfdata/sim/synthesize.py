@@ -12,7 +12,7 @@ import json
 import multiprocessing as mp
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -280,12 +280,17 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
         nodes = rec.model.nodes
         frame = renderer.render(nodes, grasp_o, twist, jaw)
         name = f"{i:06d}.png"
-        _png(folder / "left" / name, cv2.cvtColor(frame.left, cv2.COLOR_RGB2BGR), _PNG_RGB)
-        _png(folder / "right" / name, cv2.cvtColor(frame.right, cv2.COLOR_RGB2BGR), _PNG_RGB)
         mask = frame.mask.astype(np.uint8) * 255
-        _png(folder / "ground_truth/mask" / name, mask, _PNG_MASK)
         depth = np.clip(np.round(frame.depth_mm * 10.0), 0, 65535).astype(np.uint16)
-        _png(folder / "ground_truth/depth" / name, depth, _PNG_DEPTH)
+        writes = [(folder / "left" / name, cv2.cvtColor(frame.left, cv2.COLOR_RGB2BGR), _PNG_RGB),
+                  (folder / "right" / name, cv2.cvtColor(frame.right, cv2.COLOR_RGB2BGR), _PNG_RGB),
+                  (folder / "ground_truth/mask" / name, mask, _PNG_MASK),
+                  (folder / "ground_truth/depth" / name, depth, _PNG_DEPTH)]
+        # PNG encoding runs on a background thread (OpenCV releases the GIL), overlapping the next
+        # frame's physics and rendering; at most a few frames wait, to bound memory.
+        while len(pending) > 8:
+            pending.pop(0).result()
+        pending.extend(encoder.submit(_png, *w) for w in writes)
         p, n = point_map.evaluate_scattered(nodes)
         p_c = p @ r_co.T + t_co
         n_c = n @ r_co.T
@@ -300,7 +305,11 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
             with progress_counter.get_lock():
                 progress_counter.value += 1
 
-    wrench = simulate(rec, on_frame)
+    pending: list = []
+    with ThreadPoolExecutor(max_workers=1) as encoder:
+        wrench = simulate(rec, on_frame)
+        for job in pending:
+            job.result()
     gt_force = np.stack([np.interp(frame_times, wrench[:, 0], wrench[:, c]) for c in range(1, 7)], axis=1)
 
     epoch = CAMERA_EPOCH_NS + rec.plan.index * 3_600_000_000_000
