@@ -55,14 +55,14 @@ class TrackerOptions:
     lambda_chamfer: float = 1.0
     lambda_ref: float = 1.0
     lambda_prev: float = 1.0
-    lambda_flow: float = 1.0  # geometry+ only
+    lambda_flow: float = 10.0  # geometry+ only
     iterations: int = 10  # Adam steps per frame
     learning_rate: float = 1e-3
     hidden_features: int = 64
     hidden_layers: int = 2
     omega_0: float = 30.0
     output_scale_mm: float = 10.0  # SIREN output unit, in mm of displacement
-    input_extent: float = 1.0  # reference positions are scaled into [-input_extent, input_extent]
+    input_extent: float = 0.3  # reference positions are scaled into [-input_extent, input_extent]
     llr_regularization: float = 1e-3
     llr_relative: bool = True
     visibility_every_iteration: bool = True  # measure LLR residuals from their value on the frame the weights come from
