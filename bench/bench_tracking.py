@@ -9,7 +9,8 @@ processes on the two cores. Wall-clock and process-CPU figures are both printed:
 the CPU figure is the one that does not depend on the other load. Target: >= 26 frames/s.
 
 Accuracy (per recording, error over all frames and points against the simulator's material points):
-full / normal / tangential error median and p95 (mm), coverage and NNI at the force peaks, for
+full / normal / tangential error median and p95 (mm) over all tracked points, the same over the points
+whose true position is in view ("seen"), coverage and NNI at the force peaks, for
 geometry, geometry+, klt, static (points left where they started) and groundtruth (sanity: ~0).
 """
 
@@ -62,10 +63,32 @@ def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) 
     from vfdata.tracking.evaluate import SimRecording, run_tracker, score
 
     torch.set_num_threads(1)
-    columns = ["full_median_mm", "full_p95_mm", "normal_median_mm", "normal_p95_mm", "tangential_median_mm",
-               "tangential_p95_mm", "coverage", "nni", "lost_at_end", "cpu_fps"]
-    header = ["recording", "tracker", "full med", "full p95", "norm med", "norm p95", "tang med", "tang p95",
-              "coverage", "NNI", "lost", "cpu fps"]
+    columns = [
+        "full_median_mm",
+        "full_p95_mm",
+        "normal_median_mm",
+        "normal_p95_mm",
+        "tangential_median_mm",
+        "tangential_p95_mm",
+        "coverage",
+        "nni",
+        "lost_at_end",
+        "cpu_fps",
+    ]
+    header = [
+        "recording",
+        "tracker",
+        "full med",
+        "full p95",
+        "norm med",
+        "norm p95",
+        "tang med",
+        "tang p95",
+        "coverage",
+        "NNI",
+        "lost",
+        "cpu fps",
+    ]
     print(" ".join(f"{h:>10s}" for h in header))
     totals: dict[str, list[dict]] = {}
     for folder in folders:
@@ -74,17 +97,27 @@ def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) 
             run = run_tracker(name, rec, frames=frames, progress=sys.stderr.isatty())
             s = score(run, rec)
             totals.setdefault(name, []).append(s)
-            print(f"{os.path.basename(folder.rstrip('/')):>10s} {name:>10s} "
-                  + " ".join(f"{s[c]:10.3f}" for c in columns), flush=True)
+            print(
+                f"{os.path.basename(folder.rstrip('/')):>10s} {name:>10s} "
+                + " ".join(f"{s[c]:10.3f}" for c in columns),
+                flush=True,
+            )
     if len(folders) > 1:
         for name, rows in totals.items():
-            print(f"{'mean':>10s} {name:>10s} " + " ".join(f"{np.mean([r[c] for r in rows]):10.3f}" for c in columns))
+            print(
+                f"{'mean':>10s} {name:>10s} "
+                + " ".join(f"{np.mean([r[c] for r in rows]):10.3f}" for c in columns)
+            )
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("recordings", nargs="*", help="simulated raw recording folders (with ground_truth/)")
-    parser.add_argument("--trackers", nargs="+", default=["geometry", "geometry+", "klt", "static", "groundtruth"])
+    parser.add_argument(
+        "--trackers", nargs="+", default=["geometry", "geometry+", "klt", "static", "groundtruth"]
+    )
     parser.add_argument("--frames", type=int, default=None, help="track only the first N frames")
     parser.add_argument("--speed-frames", type=int, default=120)
     parser.add_argument("--cloud-points", type=int, default=20000)
