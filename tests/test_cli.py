@@ -1,0 +1,27 @@
+"""The `vfdata` command line as a whole: every subcommand registers, and start-up stays light."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from vfdata.cli import COMMANDS, build_parser
+from vfdata.commands.experiment import VARIANT_NAMES
+
+
+def test_every_command_registers():
+    parser = build_parser()
+    choices = parser._subparsers._group_actions[0].choices
+    assert set(choices) == set(COMMANDS)
+
+
+def test_experiment_help_lists_the_real_variants():
+    from vfdata.experiment import VARIANTS
+
+    assert tuple(VARIANTS) == VARIANT_NAMES
+
+
+def test_startup_does_not_import_torch():
+    code = "import sys; from vfdata.cli import build_parser; build_parser(); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
