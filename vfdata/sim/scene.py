@@ -80,11 +80,8 @@ class SceneSpec:
     dense_theta: int = 40
     tex_size: tuple[int, int] = (512, 512)
 
-    @property
-    def r_co(self) -> np.ndarray:
-        return self.object_to_camera()[0]
-
     def object_to_camera(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation, translation mm) taking object-frame points to the left camera frame."""
         return self.cam.object_to_camera(self.rotation_wo, self.origin_w_mm)
 
 

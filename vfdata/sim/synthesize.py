@@ -437,8 +437,9 @@ def _init_worker(counter) -> None:
     cv2.setNumThreads(1)
 
 
-def _make_one(args: tuple[str, int, int, str, int | None, bool]) -> str:
-    preset_name, seed, index, out_dir, frames, overwrite = args
+def _make_one(args: tuple[str, int, int, str, int | None]) -> str:
+    """Worker: make one recording (the parent already checked what may be replaced)."""
+    preset_name, seed, index, out_dir, frames = args
     preset = get_preset(preset_name)
     plan = preset.recordings[index]
     rec = build_recording(plan, seed, frames, preset.width, preset.height)
@@ -477,7 +478,7 @@ def synthesize(preset: str, out_dir: str | Path, seed: int = 0, workers: int = 1
                 if not _is_complete(target, key):
                     raise OutputExistsError(target)
     total = sum(r.frames if frames is None else frames for r in p.recordings)
-    jobs = [(preset, int(seed), r.index, str(out), frames, overwrite) for r in p.recordings]
+    jobs = [(preset, int(seed), r.index, str(out), frames) for r in p.recordings]
     # Workers are fresh processes with single-threaded BLAS: faster on few cores, and the same
     # floating-point results whatever the number of workers.
     os.environ["OPENBLAS_NUM_THREADS"] = "1"

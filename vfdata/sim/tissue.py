@@ -219,7 +219,7 @@ class Tube:
         return np.where(np.isin(names, ["axial", "bend_axial", "shear"]), hoop_w, axial_w)
 
     def s_to_ring(self, s_mm: np.ndarray) -> np.ndarray:
-        """Arc length -> fractional ring index (piecewise linear), and its derivative d(ring)/ds."""
+        """Arc length (mm) -> fractional ring index (piecewise linear)."""
         return np.interp(s_mm, self.ring_s, np.arange(self.n_rings, dtype=np.float64))
 
     def surface_map(self, s_mm: np.ndarray, theta: np.ndarray) -> SurfaceMap:
