@@ -131,3 +131,22 @@ def test_twist_gives_axial_torque_of_matching_sign(twist):
     model.relax(tol_n=1e-9)
     tz = (model.sensor_wrench().torque_nm - tare)[2]
     assert np.sign(tz) == np.sign(twist) and abs(tz) > 1e-4
+
+
+def test_sensor_stream_with_no_load_reads_bias_and_noise_at_1khz():
+    from vfdata.sim.presets import get_preset
+    from vfdata.sim.synthesize import build_recording, sensor_samples
+
+    rec = build_recording(get_preset("mini").recordings[0], seed=0, frames=60)
+    t = np.arange(0, 2.1, 1 / 60)
+    stamps, values = sensor_samples(rec, np.column_stack([t, np.zeros((len(t), 6))]))
+    s = rec.sensor
+    assert abs(np.median(np.diff(stamps)) - 1e6) < 1e4 and (np.diff(stamps) > 0).all()
+    # The first sample is 0.1 s before the first frame, on a clock running ahead by the offset.
+    assert abs(stamps[0] - (s["clock_offset_ns"] - 100_000_000)) < 1e6
+    n = len(values)
+    drift = np.asarray(s["force_drift_n_per_min"]) * (1.0 / 60)  # mean time about 1 s
+    np.testing.assert_allclose(values[:, :3].mean(0), np.asarray(s["force_bias_n"]) + drift,
+                               atol=4 * s["force_noise_n"] / np.sqrt(n) + 1e-3)
+    np.testing.assert_allclose(values[:, 3:].mean(0), s["torque_bias_nm"], atol=4 * s["torque_noise_nm"] / np.sqrt(n))
+    np.testing.assert_allclose(values[:, :3].std(0), s["force_noise_n"], rtol=0.15)
