@@ -184,7 +184,9 @@ class ColorTrackSettings:
     prior_inside: float = 2.0  # log-odds bonus deep inside the carried-over mask ...
     prior_edge: float = 1.0  # ... and at its edge: colours seen in neither model (the shaded rim)
     # stay tissue, so the mask does not erode frame after frame; the grey instrument still leaves
-    prior_slope: float = 0.5  # log-odds per working pixel of distance from the carried-over mask edge
+    prior_slope: float = 0.5  # log-odds per working pixel of depth into the carried-over mask ...
+    growth_slope: float = 1.0  # ... and per working pixel of distance outside it (steeper: the bed has
+    # patches the colour of shaded tissue, which a gentle slope lets the mask creep into)
     max_growth_px: int = 12  # the mask may grow at most this far (working px) per frame
     depth_tolerance_mm: float = 6.0  # depth cue: slack on the tissue's depth range ...
     depth_jump: float = 0.04  # ... a depth step over this fraction of the tissue depth per working pixel
@@ -425,7 +427,7 @@ class ColorTrackSegmenter(Segmenter):
         dist_in = cv2.distanceTransform(prior_u8, cv2.DIST_L2, 3)
         inside = np.clip(s.prior_edge + (dist_in - 1) * s.prior_slope, 0, s.prior_inside) * prior_mask
         score = self._log_ratio[bins] + inside
-        score -= dist_out * s.prior_slope
+        score -= dist_out * s.growth_slope
         if s.grey_penalty > 0:
             score[metal] -= s.grey_penalty
         if depth is not None:
