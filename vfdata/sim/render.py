@@ -216,25 +216,28 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     rel = quad_uv - centre_uv
     grow = 0.6 / np.maximum(np.linalg.norm(rel, axis=2, keepdims=True), 1e-6)
     pts = np.round((quad_uv + rel * grow) * (1 << _SHIFT)).astype(np.int32)
+    # Draw each quad's rank in the drawing order; only drawn quads get triangle planes below.
     qid = np.full((camera.height, camera.width), -1, dtype=np.int32)
     fill = cv2.fillConvexPoly
-    for quad_index, poly in zip(ids.tolist(), pts, strict=True):
-        fill(qid, poly, quad_index, cv2.LINE_8, _SHIFT)
+    for rank, poly in enumerate(pts):
+        fill(qid, poly, rank, cv2.LINE_8, _SHIFT)
 
     flat = np.flatnonzero(qid >= 0)
-    quad = qid.ravel()[flat]
-    px = (flat % camera.width).astype(np.float32)
-    py = (flat // camera.width).astype(np.float32)
+    rank = qid.ravel()[flat]
+    py_i, px_i = np.divmod(flat, camera.width)
+    px = px_i.astype(np.float32)
+    py = py_i.astype(np.float32)
     # Which triangle: the side of the 0-2 diagonal that vertex 3 lies on.
-    a, c, d = quv[:, 0], quv[:, 2], quv[:, 3]
+    a, c, d = quad_uv[:, 0], quad_uv[:, 2], quad_uv[:, 3]
     ex, ey = c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
     side_d = np.sign(ex * (d[:, 1] - a[:, 1]) - ey * (d[:, 0] - a[:, 0]))
     e = np.stack([-ey * side_d, ex * side_d, (ey * a[:, 0] - ex * a[:, 1]) * side_d]).astype(np.float32)
-    eq = np.take(e, quad, axis=1)
+    eq = np.take(e, rank, axis=1)
     second = (eq[0] * px + eq[1] * py + eq[2]) > 0
-    tri = 2 * quad + second
-    # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every quad.
-    tri_verts = np.stack([q[:, [0, 1, 2]], q[:, [0, 2, 3]]], axis=1).reshape(-1, 3)  # (2Q, 3)
+    tri = 2 * rank + second
+    # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every drawn quad.
+    dq = q[ids]
+    tri_verts = np.stack([dq[:, [0, 1, 2]], dq[:, [0, 2, 3]]], axis=1).reshape(-1, 3)  # (2 drawn, 3)
     inv_z = 1.0 / np.where(z > _NEAR_MM, z, np.inf)
     chans = np.concatenate([np.ones((len(z), 1)), mesh.normals, mesh.attrs], axis=1) * inv_z[:, None]
     with np.errstate(invalid="ignore"):
