@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import lightning.pytorch as L
 import numpy as np
+import pytest
 import torch
 from torch.utils.data import DataLoader, Dataset
 
@@ -73,3 +74,13 @@ class SyntheticClipDataModule(L.LightningDataModule):
         return self._loader()
 
     val_dataloader = test_dataloader = predict_dataloader = train_dataloader
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    """One intra-op thread for the model tests: the tensors are tiny, and on a loaded machine two
+    OpenMP threads waiting on each other spend far more CPU than the work itself."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 from torch.utils.data import DataLoader
 
 from vfdata.datasets import (

@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 from torchvision.models.video import r3d_18
 
 from vfdata.errors import BackendError
@@ -34,6 +35,7 @@ def test_rgb_r3d_loads_local_weights(tmp_path):
         RGBResNet3D(weights_path=str(tmp_path / "other.pth"))
 
 
+@pytest.mark.slow  # two ViT-Small models (22 M parameters each) built and saved
 def test_depth_vit_shapes_and_local_rgb_weights(tmp_path):
     import timm
 

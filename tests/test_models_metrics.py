@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 
 from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
 

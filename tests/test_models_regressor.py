@@ -5,7 +5,7 @@ import lightning.pytorch as L
 import numpy as np
 import pytest
 import torch
-from clip_fixtures import ClipList, SyntheticClipDataModule, make_clips
+from clip_fixtures import ClipList, SyntheticClipDataModule, make_clips, single_thread  # noqa: F401
 from torch.utils.data import DataLoader
 
 from vfdata.errors import InputError
@@ -19,18 +19,23 @@ def trainer(tmp_path, epochs, **kw):
     )
 
 
-def test_tiny_overfit(tmp_path):
-    L.seed_everything(0)
+def test_tiny_overfit():
+    """Four clips, the regressor's own loss, normalisation and optimiser: the loss falls 20-fold."""
+    torch.manual_seed(0)
     dm = SyntheticClipDataModule(clips=4, frames=8, points=16, batch_size=4)
-    regressor = ForceRegressor(SetTransformerLSTM(in_features=6, inducing_points=8), lr=3e-3)
-    batch = next(iter(dm.train_dataloader()))
+    model = SetTransformerLSTM(in_features=6, dim=32, heads=4, inducing_points=4, lstm_hidden=48)
+    regressor = ForceRegressor(model, lr=5e-3)
     regressor.set_normalisation(**dm.normalisation)
-    with torch.no_grad():
-        before = regressor._loss(regressor(batch), batch["force"]).item()
-    trainer(tmp_path, 80, enable_checkpointing=False, limit_val_batches=0).fit(regressor, dm)
-    with torch.no_grad():
-        after = regressor._loss(regressor.eval()(batch), batch["force"]).item()
-    assert after < 0.05 * before, (before, after)
+    optimiser = regressor.configure_optimizers()
+    batch = next(iter(dm.train_dataloader()))
+    losses = []
+    for _ in range(120):
+        loss = regressor._loss(regressor(batch), batch["force"])
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    assert min(losses[-5:]) < 0.05 * losses[0], (losses[0], losses[-5:])
 
 
 def test_checkpoint_reload_reproduces_predictions(tmp_path):

@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 
 from vfmodels.set_transformer import InducedSetAttentionBlock, MultiheadAttentionBlock, SetTransformerLSTM
 

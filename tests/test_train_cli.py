@@ -12,6 +12,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).parent))
 
+from clip_fixtures import single_thread  # noqa: E402, F401 - autouse fixture
+
 import train  # noqa: E402
 
 SYNTHETIC = [
@@ -59,6 +61,7 @@ CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
 POINT_CONFIGS = [c for c in CONFIGS if "baseline" not in c.name and "point_cloud" not in c.name]
 
 
+@pytest.mark.slow  # eight full CLI parses
 def test_every_config_parses(capsys):
     assert {c.stem for c in CONFIGS} >= {"proposed", "ablation_camera_frame", "ablation_position_only",
                                          "ablation_velocity_only", "ablation_top_bottom", "ablation_point_cloud",
@@ -70,7 +73,9 @@ def test_every_config_parses(capsys):
         assert "class_path: vfdata.datasets.ForceDataModule" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("config", POINT_CONFIGS, ids=[c.stem for c in POINT_CONFIGS])
+@pytest.mark.parametrize("config", [
+    pytest.param(c, marks=() if c.stem == "proposed" else pytest.mark.slow, id=c.stem) for c in POINT_CONFIGS
+])
 def test_point_configs_fast_dev_run_on_tracks(config, tmp_path):
     from test_datasets import frame_times, write_manifest, write_recording
 
