@@ -69,14 +69,20 @@ def main() -> None:
     ap.add_argument("--preset", default="glove", choices=["glove", "colon"], help="tissue for the breakdown")
     args = ap.parse_args()
     b = breakdown(args.preset, args.frames)
-    print(f"per-frame CPU time ({args.preset}, 640x512): physics {b['physics_ms']:.1f} ms, "
-          f"render {b['render_ms']:.1f} ms, PNG {b['png_ms']:.1f} ms, total {b['total_ms']:.1f} ms "
-          f"(scene setup {b['setup_s']:.2f} s)")
-    print(f"CPU-bound rate: {1e3 / b['total_ms']:.1f} stereo frames/s per core, "
-          f"{2e3 / b['total_ms']:.1f} on 2 cores (target >= 30)")
+    print(
+        f"per-frame CPU time ({args.preset}, 640x512): physics {b['physics_ms']:.1f} ms, "
+        f"render {b['render_ms']:.1f} ms, PNG {b['png_ms']:.1f} ms, total {b['total_ms']:.1f} ms "
+        f"(scene setup {b['setup_s']:.2f} s)"
+    )
+    print(
+        f"CPU-bound rate: {1e3 / b['total_ms']:.1f} stereo frames/s per core, "
+        f"{2e3 / b['total_ms']:.1f} on 2 cores (target >= 30)"
+    )
     for workers in (1, 2):
         rate = end_to_end(args.frames, workers)
-        print(f"end to end, mini x {args.frames} frames, {workers} worker(s): {rate:.1f} stereo frames/s (wall)")
+        print(
+            f"end to end, mini x {args.frames} frames, {workers} worker(s): {rate:.1f} stereo frames/s (wall)"
+        )
     print(f"load average during the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
