@@ -160,7 +160,7 @@ def run_tracker(
 def score(run: TrackingRun, rec: SimRecording) -> dict:
     """Error against ground truth over every frame and point the tracker reports (and, as `seen_*`,
     over those whose true position is in view: in the mask and not behind another surface), and coverage / NNI
-    at the force peaks (at every 30th frame when the clip has no peak). Frame 0 of the run holds the
+    at the force peaks (when the clip has none: every 30th frame back from the last). Frame 0 of the run holds the
     reference selection, the same for every tracker."""
     count = len(run.points)
     truth, normals = ground_truth_tracks(run.points[0], rec.material_points[:count], rec.material_normals[:count])
@@ -168,7 +168,7 @@ def score(run: TrackingRun, rec: SimRecording) -> dict:
     seen = np.stack([rec.truly_visible(truth[f], f) for f in range(count)])
     error_seen = metrics.tracking_error(run.points, truth, normals, valid=seen)
     peaks = metrics.force_peaks(rec.force_n[:count])
-    judged = peaks if len(peaks) else np.arange(30, count, 30)
+    judged = peaks if len(peaks) else np.arange(count - 1, 0, -30)[::-1]
     cover, nni = [], []
     for f in judged:
         cover.append(metrics.coverage(rec.camera.project(run.points[f]), rec.mask(f), run.visible[f]))
