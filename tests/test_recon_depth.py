@@ -123,3 +123,17 @@ def test_bad_sgbm_options_and_images():
     est = make_depth_estimator("sgbm")
     with pytest.raises(InputError, match="differ in size"):
         est.disparity(np.zeros((64, 64, 3), np.uint8), np.zeros((64, 80, 3), np.uint8))
+
+
+def test_depth_stream_equals_frame_by_frame():
+    """The overlapped stream gives exactly the per-frame results, in order."""
+    pairs = [_synthetic_pair(d) for d in (8.0, 12.0, 16.0)]
+    cam = PinholeCamera(500.0, 500.0, 64.0, 48.0, 128, 96)
+    est = make_depth_estimator("sgbm", max_disparity=32)
+    streamed = list(est.depth_stream(pairs, cam, 5.0))
+    assert len(streamed) == 3
+    for (left, right), depth in zip(pairs, streamed, strict=True):
+        np.testing.assert_array_equal(depth, est.depth_mm(left, right, cam, 5.0))
+    assert list(est.depth_stream([], cam, 5.0)) == []
+    recorded = make_depth_estimator("recorded", depths=[np.full((96, 128), 50.0)])
+    assert np.allclose(next(recorded.depth_stream(pairs[:1], cam, 5.0)), 50.0)

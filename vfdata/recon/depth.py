@@ -21,7 +21,8 @@ import functools
 import importlib
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,6 +47,14 @@ class DepthEstimator(ABC):
     ) -> np.ndarray:
         """Rectified pair -> (H, W) float32 z-depth in mm of the left camera (NaN: none)."""
         return camera.depth_from_disparity(self.disparity(left, right), baseline_mm)
+
+    def depth_stream(
+        self, pairs: Iterable[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera, baseline_mm: float
+    ) -> Iterator[np.ndarray]:
+        """Depth maps (mm) of a stream of rectified pairs, in order. Backends may overlap the work of
+        consecutive frames; the results are those of `depth_mm` frame by frame."""
+        for left, right in pairs:
+            yield self.depth_mm(left, right, camera, baseline_mm)
 
     def parameters(self) -> dict:
         """The backend's name and settings, for provenance records."""
@@ -144,6 +153,26 @@ class SgbmDepth(DepthEstimator):
         return {"backend": self.name, **self.settings.__dict__}
 
     def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:
+        return self._finish(self._start(left, right))
+
+    def depth_stream(
+        self, pairs: Iterable[tuple[np.ndarray, np.ndarray]], camera: PinholeCamera, baseline_mm: float
+    ) -> Iterator[np.ndarray]:
+        """As `depth_mm` per pair, with the matching of the next pair running in a worker thread
+        while this one is filled and refined: the matcher is OpenCV code that releases the GIL, and
+        the refinement leaves a core idle part of the time, so on two cores the throughput rises."""
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = None
+            for left, right in pairs:
+                started = pool.submit(self._start, left, right)
+                if pending is not None:
+                    yield camera.depth_from_disparity(self._finish(pending.result()), baseline_mm)
+                pending = started
+            if pending is not None:
+                yield camera.depth_from_disparity(self._finish(pending.result()), baseline_mm)
+
+    def _start(self, left: np.ndarray, right: np.ndarray) -> tuple:
+        """The first half: grey images, working resolution, matching."""
         _check_pair(left, right)
         s = self.settings
         if s.threads is not None:
@@ -157,6 +186,13 @@ class SgbmDepth(DepthEstimator):
         else:
             work_l, work_r = grey_l, grey_r
         coarse, valid = self._match(work_l, work_r)
+        return grey_l, grey_r, work_l, coarse, valid
+
+    def _finish(self, started: tuple) -> np.ndarray:
+        """The second half: hole fill, upsampling, refinement, smoothing."""
+        s = self.settings
+        grey_l, grey_r, work_l, coarse, valid = started
+        h, w = grey_l.shape
         filled = fill_disparity_holes(coarse, valid, work_l, sigma_intensity=s.fill_sigma_intensity)
         scale_x = w / work_l.shape[1]
         disp = cv2.resize(filled, (w, h), interpolation=cv2.INTER_LINEAR) * np.float32(scale_x)
