@@ -199,7 +199,7 @@ def bench_speed(rec: dict, repeats: int) -> None:
         )
     print("(fps from the minimum wall time; 'ms cpu' is CPU time per frame summed over threads)")
     print(
-        f"{'object frame (' + str(len(points)) + ' points)':34s} {t_min_of:6.2f}s {t_med_of:6.2f}s  "
+        f"{'object frame (' + str(len(points)) + ' points)':38s} {t_min_of:6.2f}s {t_med_of:6.2f}s  "
         f"cpu {cpu_of:.2f}s  target <= 2 s per recording {'ok' if t_min_of <= 2 else 'SHORT'}"
     )
 
