@@ -35,12 +35,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pipelined", action="store_true",
                    help="with --stream: image stages of the next frame in a second thread (2 cores)")
     p.add_argument("--threads", type=int, default=1,
-                   help="with --stream: torch/OpenCV threads per stage (default 1, fastest on a few cores)")
+                   help="torch/OpenCV threads (default 1, the fastest for per-frame work on a few cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    import cv2
+    import torch
+
+    # Per-frame work on small tensors: extra threads only add synchronisation (and with --pipelined
+    # two stages run at once), so one thread per stage is the fastest on a few cores.
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
     window = None if args.window == 0 else args.window
     if args.stream:
         return _stream(args, window)
@@ -61,8 +68,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _stream(args: argparse.Namespace, window: int | None) -> int:
-    import cv2
-    import torch
     from tqdm import tqdm
 
     from vfdata.errors import InputError
@@ -70,9 +75,6 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     from vfdata.processing import camera_up
     from vfdata.recording import Recording
 
-    # Small per-frame tensors: extra threads only add synchronisation, and two stages may run at once.
-    torch.set_num_threads(args.threads)
-    cv2.setNumThreads(args.threads)
     out = Path(args.out or args.recording.parent)
     out.mkdir(parents=True, exist_ok=True)
     with Recording.open(args.recording) as rec:
