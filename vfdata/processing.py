@@ -45,6 +45,10 @@ class ProcessOptions:
     num_points: int = 256
     seed: int = 0
     ground_truth: Path | None = None  # simulator ground truth (for depth 'recorded' and tracker 'groundtruth')
+    # Nearest and farthest surface expected in front of the scope, mm: sets the stereo matcher's
+    # disparity range unless depth_options give one. Without a floor, dark textureless background
+    # matches at near-zero disparity (depth near infinity) and leaks into the tissue's edges.
+    working_range_mm: tuple[float, float] = (40.0, 300.0)
     max_frames: int | None = None
     progress: bool = True
 
@@ -226,6 +230,10 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
     ground_truth = find_ground_truth(rec, options.ground_truth)
 
     depth_options = dict(options.depth_options)
+    if options.depth == "sgbm" and not {"min_disparity", "max_disparity"} & set(depth_options):
+        near, far = options.working_range_mm
+        depth_options["min_disparity"] = int(np.floor(camera.fx * baseline_mm / far))
+        depth_options["max_disparity"] = int(np.ceil(camera.fx * baseline_mm / near))
     if options.depth == "recorded":
         if ground_truth is None:
             raise InputError(src, "depth 'recorded' needs the simulator's ground_truth/ (--ground-truth DIR)")
