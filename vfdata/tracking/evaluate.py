@@ -54,11 +54,11 @@ class SimRecording:
         return len(self.material_points)
 
     def image(self, frame: int) -> np.ndarray:
-        """(H, W, 3) uint8 RGB left image."""
+        """(H, W, 3) uint8 BGR left image (OpenCV order, as `Recording.frame` gives)."""
         bgr = cv2.imread(str(self.folder / "left" / f"{frame:06d}.png"), cv2.IMREAD_COLOR)
         if bgr is None:
             raise InputError(self.folder / "left" / f"{frame:06d}.png", "missing or unreadable image")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return bgr
 
     def mask(self, frame: int) -> np.ndarray:
         return cv2.imread(str(self.folder / "ground_truth/mask" / f"{frame:06d}.png"), cv2.IMREAD_UNCHANGED) > 0

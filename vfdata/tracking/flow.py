@@ -12,12 +12,12 @@ LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
-    """(H, W) or (H, W, 3) RGB image, uint8 or uint16 or float in [0, 1] -> (H, W) uint8."""
+    """(H, W) or (H, W, 3) BGR image (the project's OpenCV order), uint8 or uint16 or float in [0, 1] -> (H, W) uint8."""
     image = np.asarray(image)
     if image.ndim == 3:
         if image.shape[2] == 4:
             image = image[..., :3]
-        image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+        image = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_BGR2GRAY)
     if image.dtype == np.uint8:
         return image
     if image.dtype == np.uint16:
