@@ -54,8 +54,12 @@ def main() -> int:
     parser.add_argument("--recording", type=Path, help="recording MCAP (default: simulate one)")
     parser.add_argument("--ckpt", type=Path, help="trained checkpoint (default: untrained proposed model)")
     parser.add_argument("--frames", type=int, default=120, help="frames to stream (default 120)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch / OpenCV threads (default 1: one per process is fastest here)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch / OpenCV threads (default 1: one per process is fastest here)",
+    )
     parser.add_argument("--window", type=int, default=16, help="LSTM window (0: carried state)")
     parser.add_argument("--depth", default="sgbm")
     parser.add_argument("--segment", default="colortrack")
@@ -85,9 +89,17 @@ def main() -> int:
         camera, baseline_mm, up = rec.camera, rec.stereo.baseline_mm, camera_up(rec)
 
     def stream(pipelined: bool):
-        estimator = StreamingForceEstimator(ckpt, camera, baseline_mm, prompt, depth=args.depth,
-                                            segment=args.segment, up=up, pipelined=pipelined,
-                                            window=None if args.window == 0 else args.window)
+        estimator = StreamingForceEstimator(
+            ckpt,
+            camera,
+            baseline_mm,
+            prompt,
+            depth=args.depth,
+            segment=args.segment,
+            up=up,
+            pipelined=pipelined,
+            window=None if args.window == 0 else args.window,
+        )
         warm = 3  # the first frames fix the object frame and the tracked points: not steady state
         for frame in frames[:warm]:
             estimator.push(frame.left, frame.right, frame.stamp_ns)
@@ -107,32 +119,46 @@ def main() -> int:
         return wall, cpu, 1000.0 * np.array(latencies), count / total
 
     load = os.getloadavg()[0]
-    print(f"recording {recording} ({camera.width}x{camera.height}), {n} frames, {args.threads} thread(s) per "
-          f"stage, {os.cpu_count()} CPU(s), load average {load:.1f}, torch {torch.__version__}")
-    print("CPU ms: CPU time of the thread that ran the stage (= wall time on an idle core); wall ms also "
-          "counts waiting for a CPU when other processes run")
+    print(
+        f"recording {recording} ({camera.width}x{camera.height}), {n} frames, {args.threads} thread(s) per "
+        f"stage, {os.cpu_count()} CPU(s), load average {load:.1f}, torch {torch.__version__}"
+    )
+    print(
+        "CPU ms: CPU time of the thread that ran the stage (= wall time on an idle core); wall ms also "
+        "counts waiting for a CPU when other processes run"
+    )
     wall, cpu, latency_ms, serial_fps = stream(pipelined=False)
     print(f"{'stage':<18}{'CPU ms':>9}{'frames/s':>10}{'wall ms':>10}{'frames/s':>10}")
     stages = [s for s in ("depth", "mask", "cloud", "tracking", "force") if s in wall]
     for stage in stages:
-        print(f"{stage:<18}{cpu[stage]:>9.2f}{1000.0 / cpu[stage]:>10.1f}{wall[stage]:>10.2f}"
-              f"{1000.0 / wall[stage]:>10.1f}")
+        print(
+            f"{stage:<18}{cpu[stage]:>9.2f}{1000.0 / cpu[stage]:>10.1f}{wall[stage]:>10.2f}"
+            f"{1000.0 / wall[stage]:>10.1f}"
+        )
     cpu_total = sum(cpu[s] for s in stages)
-    print(f"{'end to end, serial':<18}{cpu_total:>9.2f}{1000.0 / cpu_total:>10.1f}{1000.0 / serial_fps:>10.2f}"
-          f"{serial_fps:>10.1f}")
+    print(
+        f"{'end to end, serial':<18}{cpu_total:>9.2f}{1000.0 / cpu_total:>10.1f}{1000.0 / serial_fps:>10.2f}"
+        f"{serial_fps:>10.1f}"
+    )
     print(f"{'(decode, not in)':<18}{'':>9}{'':>10}{decode_ms:>10.2f}{1000.0 / decode_ms:>10.1f}")
-    print(f"serial latency per frame: median {np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} "
-          "ms wall (+ one frame period: a frame's force needs the next frame's points for its velocity)")
+    print(
+        f"serial latency per frame: median {np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} "
+        "ms wall (+ one frame period: a frame's force needs the next frame's points for its velocity)"
+    )
 
     image_cpu = sum(cpu[s] for s in ("depth", "mask", "cloud") if s in cpu)
     track_cpu = sum(cpu[s] for s in ("tracking", "force") if s in cpu)
-    print(f"pipelined on 2 cores, from CPU time: image stages {image_cpu:.1f} ms || tracking + model "
-          f"{track_cpu:.1f} ms -> {1000.0 / max(image_cpu, track_cpu):.1f} frames/s on two idle cores "
-          "(target >= 10 frames/s)")
+    print(
+        f"pipelined on 2 cores, from CPU time: image stages {image_cpu:.1f} ms || tracking + model "
+        f"{track_cpu:.1f} ms -> {1000.0 / max(image_cpu, track_cpu):.1f} frames/s on two idle cores "
+        "(target >= 10 frames/s)"
+    )
     wall_p, cpu_p, latency_p, pipelined_fps = stream(pipelined=True)
-    print(f"pipelined, measured: {pipelined_fps:.1f} frames/s wall (load average {os.getloadavg()[0]:.1f}), push "
-          f"median {np.median(latency_p):.1f} ms; CPU ms per frame "
-          + ", ".join(f"{k} {v:.1f}" for k, v in cpu_p.items()))
+    print(
+        f"pipelined, measured: {pipelined_fps:.1f} frames/s wall (load average {os.getloadavg()[0]:.1f}), push "
+        f"median {np.median(latency_p):.1f} ms; CPU ms per frame "
+        + ", ".join(f"{k} {v:.1f}" for k, v in cpu_p.items())
+    )
     return 0
 
 
