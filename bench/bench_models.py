@@ -100,12 +100,17 @@ def main() -> None:
     parser.add_argument("--train-batch", type=int, default=16, help="clips per training batch")
     parser.add_argument("--seconds", type=float, default=5.0, help="minimum timing per figure")
     parser.add_argument("--quick", action="store_true", help="eager and compiled fp32 fused only")
+    parser.add_argument("--variant", choices=[f"{c}-{p}-{a}" for c in ("eager", "compiled") for p in ("fp32", "bf16")
+                                              for a in ("fused", "math")], help="only this variant")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.set_float32_matmul_precision("high")
     variants = [(False, False, True), (True, False, True)]
     if not args.quick:
         variants += [(False, False, False), (False, True, True), (True, True, True)]
+    if args.variant:
+        compiled, precision_name, attn = args.variant.split("-")
+        variants = [(compiled == "compiled", precision_name == "bf16", attn == "fused")]
     device_name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {args.threads} threads"
     print(
         f"SetTransformerLSTM, clips of T={T} frames x N={N} points x C={C}; {device_name}; "
