@@ -1,7 +1,7 @@
 """Writing MCAP files of the VisionForce layout (recordings and derived files).
 
 `McapWriter` writes MCAP (https://mcap.dev/spec) directly: profile ros2, CDR messages, ros2msg
-schemas, zstd chunks with message indexes, chunk and data-section CRCs, and a summary with schemas,
+schemas, zstd chunks with message indexes and CRCs, and a summary (with its CRC) holding schemas,
 channels, statistics, chunk and metadata indexes and summary offsets. Writing the records ourselves
 (instead of through `mcap.writer.Writer`) buys two things the converters need:
 
@@ -11,7 +11,9 @@ channels, statistics, chunk and metadata indexes and summary offsets. Writing th
 - small high-rate topics gathered into chunks of their own (`separate_topics`), so a reader gets a
   1 kHz force series without decompressing the video.
 
-The file appears under its name only when `close()` succeeds; on any error nothing is left behind.
+The data-section CRC is left at 0 ("not computed", as `mcap.writer.Writer` does by default): every
+chunk carries the CRC of its records already, and a second CRC pass over the whole video cost as much
+as the compression. The file appears under its name only when `close()` succeeds; on any error nothing is left behind.
 Files are read back in the tests by `mcap`'s own reader and by rosbags."""
 
 from __future__ import annotations
@@ -105,7 +107,6 @@ class McapWriter:
         self._tmp = self._atomic.__enter__()
         self._stream = open(self._tmp, "wb")  # noqa: SIM115 - closed in close()/abort()
         self._offset = 0
-        self._crc = 0
         self._chunk_size = chunk_size
         self._separate = set(separate_topics)
         self._separate_batch = separate_batch
@@ -127,7 +128,6 @@ class McapWriter:
     def _emit(self, data: bytes | bytearray) -> None:
         self._stream.write(data)
         self._offset += len(data)
-        self._crc = zlib.crc32(data, self._crc)
 
     # -- channels and messages ----------------------------------------------------------------
     def channel(self, topic: str, msgtype: str) -> int:
@@ -178,7 +178,7 @@ class McapWriter:
     def _flush(self, chunk: _Chunk) -> None:
         if not chunk.index:
             return
-        records = bytes(chunk.records)
+        records = chunk.records
         compressed = chunk.compressor.compress(records)
         start_offset = self._offset
         body = (struct.pack("<QQQI", chunk.start, chunk.end, len(records), zlib.crc32(records))
@@ -211,7 +211,7 @@ class McapWriter:
     def _finish(self) -> None:
         self._flush(self._main)
         self._flush(self._series)
-        self._emit(_record(OP_DATA_END, struct.pack("<I", self._crc)))
+        self._emit(_record(OP_DATA_END, struct.pack("<I", 0)))
         summary_start = self._offset
         summary_crc = 0
         groups = []
