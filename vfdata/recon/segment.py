@@ -331,6 +331,9 @@ class ColorTrackSegmenter(Segmenter):
                 )
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
         try:
+            # GrabCut's GMM initialisation draws from OpenCV's global generator: seed it, so the mask does
+            # not depend on whatever ran earlier in the process.
+            cv2.setRNGSeed(0)
             cv2.grabCut(small, gc, None, bgd, fgd, self.settings.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
         except cv2.error as exc:
             raise InputError("prompt", f"GrabCut could not separate the prompted region: {exc.err}") from exc
