@@ -35,6 +35,7 @@ import yaml
 from tqdm import tqdm
 
 from vfdata import reports
+from vfdata.datasets import load_manifest
 from vfdata.errors import InputError, VisionForceError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -109,25 +110,10 @@ class Entry:
 
 
 def read_manifest(path: str | Path) -> tuple[dict, list[Entry]]:
-    """The manifest dict and its recordings with absolute raw-folder and MCAP paths."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "dataset manifest not found")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise InputError(path, f"not valid YAML ({exc})") from exc
-    if not isinstance(data, dict) or not isinstance(data.get("recordings"), list) or not data["recordings"]:
-        raise InputError(path, "a manifest needs a non-empty 'recordings' list")
-    root = (path.parent / str(data.get("root", "."))).resolve()
-    entries = []
-    for item in data["recordings"]:
-        if not isinstance(item, dict) or "id" not in item or item.get("split") not in ("train", "val", "test"):
-            raise InputError(path, f"recording entry {item!r} needs an id and a split (train, val or test)")
-        rid = str(item["id"])
-        entries.append(Entry(rid, float(item.get("orientation_deg", 0.0)), item["split"],
-                             root / str(item.get("raw", rid)), root / str(item.get("mcap", f"{rid}.mcap"))))
-    return data, entries
+    """The manifest's name and its recordings with absolute paths (parsed and checked by
+    `vfdata.datasets.load_manifest`, the one reader of manifests)."""
+    name, entries = load_manifest(path)
+    return {"name": name}, [Entry(e.id, e.orientation_deg, e.split, e.raw, e.mcap) for e in entries]
 
 
 def tracker_manifest(data: dict, entries: list[Entry], tracker: str, out: Path) -> Path:
