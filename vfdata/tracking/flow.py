@@ -12,7 +12,7 @@ LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
-    """(H, W) or (H, W, 3) BGR image (the project's OpenCV order), uint8 or uint16 or float in [0, 1] -> (H, W) uint8."""
+    """(H, W) or (H, W, 3) BGR image (OpenCV order), uint8 or uint16 or float in [0, 1] -> (H, W) uint8."""
     image = np.asarray(image)
     if image.ndim == 3:
         if image.shape[2] == 4:
