@@ -9,7 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -247,13 +247,27 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
     frame_info: ObjectFrame | None = None
     tracker = None
     with McapWriter(out, overwrite=overwrite) as writer:
+        # The depth backend sees the frames as a stream, so it can overlap consecutive frames (sgbm
+        # matches the next pair in a second thread while this one is refined).
+        decoded: deque = deque()
+
+        def pairs():
+            for k in range(n_frames):
+                started = time.perf_counter()
+                decoded.append(rec.rectified_frame(k))
+                clock.add("decode", started)
+                yield decoded[-1].left, decoded[-1].right
+
+        depths = estimator.depth_stream(pairs(), camera, baseline_mm)
         bar = tqdm(range(n_frames), desc=f"process {src.name}", unit="frame", disable=not options.progress)
         for i in bar:
             t = time.perf_counter()
-            frame = rec.rectified_frame(i)
-            t = clock.add("decode", t)
-            depth = estimator.depth_mm(frame.left, frame.right, camera, baseline_mm)
+            decode_before = clock.seconds["decode"]
+            depth = next(depths)
+            frame = decoded.popleft()
+            # Waiting for the depth includes decoding the frames it pulled: count that as decode.
             t = clock.add("depth", t)
+            clock.seconds["depth"] -= clock.seconds["decode"] - decode_before
             mask = segmenter.start(frame.left, prompt, depth) if i == 0 else segmenter.track(frame.left, depth)
             t = clock.add("mask", t)
             cloud = tissue_cloud(depth, mask, camera)
