@@ -103,6 +103,8 @@ def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.nda
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from vfdata.reports import save_figure
+
     force = np.asarray(force_n, dtype=np.float64).reshape(-1, 3)
     index = np.arange(len(force)) if frame_index is None else np.asarray(frame_index)
     fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
@@ -115,12 +117,7 @@ def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.nda
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("frame")
     fig.suptitle(title or f"estimated force ({frame_label})")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 class OverlayVideo:

@@ -328,6 +328,13 @@ def plot_force_curves(predictions: Mapping[str, np.ndarray], path: str | Path, f
         ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out, write (PNG, 120 dpi, creating the folder) and close a matplotlib figure."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -382,12 +389,7 @@ def plot_force_distributions(train_n: np.ndarray, test_n: np.ndarray, path: str 
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.ndarray, np.ndarray]],
@@ -413,9 +415,4 @@ def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.nda
         ax.axis("off")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
