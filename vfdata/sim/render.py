@@ -81,16 +81,21 @@ def grid_quads(rows: int, cols: int, wrap_cols: bool) -> np.ndarray:
     return q.reshape(-1, 4)
 
 
-def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, material: float,
-                  cap0: bool = False, cap1: bool = True) -> Mesh:
-    """A cylinder from p0 to p1 with optional flat caps; attrs = [material id]."""
+def axis_frame(p0: np.ndarray, p1: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Length of the segment p0 -> p1 and a right-handed orthonormal frame (a along it, u, v across)."""
     axis = p1 - p0
-    length = np.linalg.norm(axis)
+    length = float(np.linalg.norm(axis))
     a = axis / length
     ref = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
     u = np.cross(a, ref)
     u /= np.linalg.norm(u)
-    v = np.cross(a, u)
+    return length, a, u, np.cross(a, u)
+
+
+def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, material: float,
+                  cap0: bool = False, cap1: bool = True) -> Mesh:
+    """A cylinder from p0 to p1 with optional flat caps; attrs = [material id]."""
+    length, a, u, v = axis_frame(p0, p1)
     ang = 2 * np.pi * np.arange(n_around) / n_around
     ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v  # (n, 3) radial directions
     verts = np.concatenate([p0 + radius * ring, p1 + radius * ring])

@@ -19,6 +19,7 @@ from vfdata.sim.render import (
     Mesh,
     NoisePool,
     Palette,
+    axis_frame,
     box_mesh,
     bumped_normals,
     cylinder_mesh,
@@ -249,13 +250,7 @@ class SceneRenderer:
                             np.full(n_around, len(local) - 1)], 1)
             self._shaft_local = (local, np.concatenate([quads, cap]))
         local, quads = self._shaft_local
-        axis = p1 - p0
-        length = np.linalg.norm(axis)
-        a = axis / length
-        ref = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
-        u = np.cross(a, ref)
-        u /= np.linalg.norm(u)
-        v = np.cross(a, u)
+        length, a, u, v = axis_frame(p0, p1)
         radial = local[:, :1] * u + local[:, 1:2] * v
         verts = p0 + radius * radial + length * local[:, 2:3] * a
         normals = radial.copy()
