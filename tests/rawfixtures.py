@@ -37,16 +37,17 @@ def frames(n: int, width: int, height: int, seed: int = 0) -> list[tuple[np.ndar
 
 def make_raw(folder: Path, n: int = 12, width: int = 160, height: int = 128, *, video: str | None = None,
              force_rate_hz: float = 1000.0, pose: bool = True, rostopic: bool = False, seed: int = 0,
-             rectified: bool = True) -> Path:
-    """A raw folder: `video` None (PNG folders), 'pair' (left.avi/right.avi) or 'sbs' (stereo.avi)."""
+             rectified: bool = True, suffix: str = ".png") -> Path:
+    """A raw folder: `video` None (image folders, `suffix` .png or .jpg), 'pair' (left.avi/right.avi) or 'sbs'
+    (stereo.avi)."""
     folder.mkdir(parents=True, exist_ok=True)
     pairs = frames(n, width, height, seed)
     if video is None:
         for side in ("left", "right"):
             (folder / side).mkdir(exist_ok=True)
         for i, (left, right) in enumerate(pairs):
-            cv2.imwrite(str(folder / "left" / f"{i:06d}.png"), left)
-            cv2.imwrite(str(folder / "right" / f"{i:06d}.png"), right)
+            cv2.imwrite(str(folder / "left" / f"{i:06d}{suffix}"), left)
+            cv2.imwrite(str(folder / "right" / f"{i:06d}{suffix}"), right)
     else:
         fourcc = cv2.VideoWriter_fourcc(*"MJPG")
         if video == "pair":

@@ -16,7 +16,7 @@ from rawfixtures import FRAME_NS, T0_NS, make_raw
 
 from vfdata.calibration import StereoCalibration
 from vfdata.cli import main
-from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder, read_force_csv
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder, jpeg_colour_size, read_force_csv
 from vfdata.errors import FormatError
 from vfdata.recording import Recording, layout
 from vfdata.recording.inspect import check_file, info_text
@@ -77,6 +77,29 @@ def test_jpeg_is_default_and_close(raw, tmp_path):
     assert left.format == "jpeg"
     error = np.abs(rec.frame(3).left.astype(int) - cv2.imread(str(raw / "left" / "000003.png")).astype(int)).mean()
     assert error < 10.0  # noise-like test texture is the worst case for JPEG
+
+
+def test_jpeg_frames_are_stored_as_they_are(tmp_path):
+    src = make_raw(tmp_path / "rec", n=6, suffix=".jpg")
+    rec = Recording.open(_convert(src, tmp_path / "rec.mcap"))
+    for i in (0, 5):
+        left, right = rec.frame_images(i)
+        assert left.data == (src / "left" / f"{i:06d}.jpg").read_bytes()
+        assert right.data == (src / "right" / f"{i:06d}.jpg").read_bytes()
+    again = tmp_path / "again.mcap"
+    assert main(["convert", "--quiet", "--reencode", "--quality", "60", str(src), str(again)]) == 0
+    left, _ = Recording.open(again).frame_images(0)
+    assert left.data != (src / "left" / "000000.jpg").read_bytes()
+
+
+def test_grayscale_jpeg_is_stored_in_colour(tmp_path):
+    src = make_raw(tmp_path / "rec", n=4, suffix=".jpg")
+    for path in (src / "left").iterdir():
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+    assert jpeg_colour_size((src / "left" / "000000.jpg").read_bytes()) is None
+    assert jpeg_colour_size((src / "right" / "000000.jpg").read_bytes()) == (160, 128)
+    rec = Recording.open(_convert(src, tmp_path / "rec.mcap"))
+    assert rec.frame(2).left.shape == (128, 160, 3)
 
 
 @pytest.mark.parametrize("video", ["pair", "sbs"])
@@ -291,10 +314,26 @@ def _break_calibration_size(src: Path) -> str:
     return "calibration.yaml: image size 320x128 differs from left/000000.png (160x128)"
 
 
+def _break_damaged_jpeg(src: Path) -> str:
+    for side in ("left", "right"):
+        for path in (src / side).iterdir():
+            cv2.imwrite(str(path.with_suffix(".jpg")), cv2.imread(str(path)))
+            path.unlink()
+    path = src / "right" / "000004.jpg"
+    path.write_bytes(path.read_bytes()[:2] + b"\x00" * 64)
+    return "000004.jpg: image cannot be decoded"
+
+
+def _break_jpeg_size(src: Path) -> str:
+    _break_damaged_jpeg(src)
+    cv2.imwrite(str(src / "right" / "000004.jpg"), np.zeros((128, 150, 3), np.uint8))
+    return "calibration.yaml: image size 160x128 differs from right/000004.jpg (150x128)"
+
+
 BREAKERS = [
     _break_missing_folder, _break_missing_calibration, _break_frame_count, _break_frames_rows, _break_backwards,
     _break_repeat, _break_force_nan, _break_pose_inf, _break_force_gap, _break_force_short,
-    _break_undecodable_image, _break_calibration_size,
+    _break_undecodable_image, _break_calibration_size, _break_damaged_jpeg, _break_jpeg_size,
 ]
 
 

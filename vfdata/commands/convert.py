@@ -18,6 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--format", dest="image_format", choices=["jpeg", "png"], default="jpeg",
                    help="image compression in the MCAP (default jpeg)")
     p.add_argument("--quality", type=int, default=95, help="JPEG quality 1-100 (default 95)")
+    p.add_argument("--reencode", action="store_true",
+                   help="re-encode colour JPEG input frames at --quality (default: store them as they are)")
     p.add_argument("--force-gap-ms", type=float, default=50.0,
                    help="largest gap allowed in the force stream over the video span (default 50 ms)")
     p.add_argument("--workers", type=int, default=2, help="image encoding threads (default 2)")
@@ -38,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     options = ConvertOptions(
-        image_format=args.image_format, jpeg_quality=args.quality,
+        image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
         force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), workers=args.workers, progress=not args.quiet,
     )
     if is_bag(args.src):

@@ -3,7 +3,8 @@
 Everything is validated before and while writing; any problem raises InputError naming the file,
 and the atomic writer leaves no output behind. Images are decoded and JPEG/PNG-encoded on a thread
 pool (OpenCV releases the GIL), written in frame order with the force and pose samples interleaved
-by stamp."""
+by stamp. Colour JPEG frames are stored as they are when the output is JPEG: a second lossy encoding
+would only lose detail and time."""
 
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ class ConvertOptions:
     workers: int = 2
     progress: bool = True
     chunk_size: int = CHUNK_SIZE  # bytes of messages per MCAP chunk
+    keep_jpeg: bool = True  # store colour JPEG input frames byte for byte (jpeg output only)
 
 
 # -- tables ---------------------------------------------------------------------------------------
@@ -366,12 +368,29 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     )
     extension = ".jpg" if options.image_format == "jpeg" else ".png"
 
+    keep_jpeg = options.keep_jpeg and options.image_format == "jpeg"
+
     def encode(item) -> tuple[bytes, bytes]:
         name, left, right = item
         pair = []
         for image in (left, right):
             if isinstance(image, Path):
                 path = image
+                name = path.relative_to(src).as_posix()
+                if keep_jpeg and path.suffix.lower() in (".jpg", ".jpeg"):
+                    data = path.read_bytes()
+                    size = jpeg_colour_size(data)
+                    # A reduced decode (1/8 scale) still walks every entropy-coded block, so a
+                    # damaged file is caught at a fraction of the cost of a full decode.
+                    if size is not None and cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                         cv2.IMREAD_REDUCED_COLOR_8) is not None:
+                        if size != (calib.width, calib.height):
+                            raise InputError(
+                                src / "calibration.yaml",
+                                f"image size {calib.width}x{calib.height} differs from {name} ({size[0]}x{size[1]})",
+                            )
+                        pair.append(data)
+                        continue
                 image = cv2.imread(str(path), cv2.IMREAD_COLOR)
                 if image is None:
                     raise InputError(path, "image cannot be decoded")
@@ -423,6 +442,33 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
         if pose is not None:
             _write_pose(writer, pose, pose_i, len(pose[0]))
     return out
+
+
+def jpeg_colour_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from the frame header of a 3-component (colour) baseline or progressive JPEG;
+    None for anything else (grayscale, CMYK, not a JPEG, no frame header)."""
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        # SOF0-SOF15 except DHT (C4), JPG (C8) and DAC (CC) carry the frame size.
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 10 > len(data):
+                return None
+            height = int.from_bytes(data[i + 5:i + 7], "big")
+            width = int.from_bytes(data[i + 7:i + 9], "big")
+            return (width, height) if data[i + 9] == 3 else None
+        if marker == 0xDA:  # start of scan before any frame header
+            return None
+        i += 2 + length
+    return None
 
 
 def _meta_text(value) -> str:
