@@ -137,6 +137,10 @@ class SceneRenderer:
         uu, vv = np.meshgrid(theta / (2 * np.pi) * tw, s / tube.arc_length_mm * (th - 1), indexing="xy")
         apex_uv = np.stack([theta / (2 * np.pi) * tw, np.full_like(theta, th - 1)], axis=1)
         self.tube_uv = np.concatenate([np.stack([uu.ravel(), vv.ravel()], 1), apex_uv])
+        # One bed and one fixture for both views: the background is a single 3D surface, so stereo
+        # matching on it recovers its true depth.
+        self.bed = self._bed_mesh().transformed(self.r_co, self.t_co)
+        self.fixture = self._fixture_mesh().transformed(self.r_co, self.t_co)
         self.views = [self._render_static(k) for k in range(2)]
 
     # --- static layer ------------------------------------------------------------------------------
@@ -180,8 +184,8 @@ class SceneRenderer:
         spec = self.spec
         cam = spec.cam.camera
         shift = self._view_offset(view)
-        bed = self._bed_mesh().transformed(self.r_co, self.t_co - shift)
-        fixture = self._fixture_mesh().transformed(self.r_co, self.t_co - shift)
+        bed = self.bed.transformed(np.eye(3), -shift)
+        fixture = self.fixture.transformed(np.eye(3), -shift)
         light = self._light(view)
         hw = cam.height * cam.width
         depth = np.full(hw, np.inf)
