@@ -55,9 +55,10 @@ def test_manifest_matches_the_committed_ones(mini):
 
 def test_raw_layout(mini):
     rec = mini / "mini_000"
-    left = sorted((rec / "left").glob("*.png"))
-    assert [p.name for p in left] == [f"{i:06d}.png" for i in range(FRAMES)]
-    assert sorted(p.name for p in (rec / "right").glob("*.png")) == [p.name for p in left]
+    left = sorted((rec / "left").iterdir())
+    assert [p.name for p in left] == [f"{i:06d}.jpg" for i in range(FRAMES)]
+    assert sorted(p.name for p in (rec / "right").iterdir()) == [p.name for p in left]
+    assert left[0].read_bytes()[:3] == b"\xff\xd8\xff"  # JPEG
     img = cv2.imread(str(left[0]), cv2.IMREAD_UNCHANGED)
     assert img.shape == (512, 640, 3) and img.dtype == np.uint8
 
@@ -146,9 +147,25 @@ def test_deterministic_whatever_the_workers(mini, tmp_path):
 
 def test_seed_changes_the_data(mini, tmp_path):
     synthesize("mini", tmp_path, seed=1, workers=1, progress=False, frames=2)
-    a = (mini / "mini_000/left/000000.png").read_bytes()
-    b = (tmp_path / "mini_000/left/000000.png").read_bytes()
+    a = (mini / "mini_000/left/000000.jpg").read_bytes()
+    b = (tmp_path / "mini_000/left/000000.jpg").read_bytes()
     assert a != b
+
+
+def test_png_frames_on_request_are_the_lossless_originals(mini, tmp_path):
+    """--image-format png writes the very frames the JPEGs compress; the ground truth is the same."""
+    synthesize("mini", tmp_path, seed=0, workers=1, progress=False, frames=2, image_format="png")
+    rec, jpeg_rec = tmp_path / "mini_001", mini / "mini_001"
+    assert sorted(p.name for p in (rec / "left").iterdir()) == ["000000.png", "000001.png"]
+    png = cv2.imread(str(rec / "left/000001.png"))
+    jpeg = cv2.imread(str(jpeg_rec / "left/000001.jpg"))
+    assert not np.array_equal(png, jpeg)
+    assert np.abs(png.astype(int) - jpeg).mean() < 2.0  # quality 95: close to the original
+    for gt in ("mask/000001.png", "depth/000001.png"):
+        assert (rec / "ground_truth" / gt).read_bytes() == (jpeg_rec / "ground_truth" / gt).read_bytes()
+    # A folder made with the other format is not mistaken for a finished one.
+    with pytest.raises(OutputExistsError):
+        synthesize("mini", tmp_path, seed=0, workers=1, progress=False, frames=2)
 
 
 def test_existing_output_is_kept_or_refused(mini, tmp_path, capsys):
@@ -163,4 +180,6 @@ def test_existing_output_is_kept_or_refused(mini, tmp_path, capsys):
 def test_cli_writes_the_manifest(tmp_path, capsys):
     assert main(["synth", "--preset", "mini", str(tmp_path / "d"), "--frames", "1"]) == 0
     assert capsys.readouterr().out.strip().endswith("mini.manifest.yaml")
-    assert (tmp_path / "d" / "mini_002" / "left" / "000000.png").is_file()
+    assert (tmp_path / "d" / "mini_002" / "left" / "000000.jpg").is_file()
+    assert main(["synth", "--preset", "mini", str(tmp_path / "p"), "--frames", "1", "--image-format", "png"]) == 0
+    assert (tmp_path / "p" / "mini_002" / "left" / "000000.png").is_file()

@@ -23,6 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (default 1)")
     p.add_argument("--frames", type=int, default=None, metavar="N",
                    help="override the number of frames of every recording (quick runs)")
+    p.add_argument("--image-format", choices=["jpeg", "png"], default="jpeg",
+                   help="stereo views as JPEG quality 95 (default, fast) or lossless PNG; the ground truth "
+                   "is always lossless PNG")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing recordings made with other settings")
     p.set_defaults(func=run)
@@ -32,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from vfdata.sim import synthesize
 
     path = synthesize(args.preset, args.out_dir, seed=args.seed, workers=args.workers,
-                      progress=sys.stderr.isatty(), frames=args.frames, overwrite=args.overwrite)
+                      progress=sys.stderr.isatty(), frames=args.frames, overwrite=args.overwrite,
+                      image_format=args.image_format)
     print(path)
     return 0
