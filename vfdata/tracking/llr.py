@@ -44,7 +44,7 @@ def reconstruction_weights(
     k = neighbours.shape[1]
     basis = points if basis is None else np.asarray(basis, dtype=np.float64)
     z = basis[neighbours] - points[:, None, :]  # (N, k, 3)
-    gram = np.einsum("nkd,nld->nkl", z, z)
+    gram = z @ z.transpose(0, 2, 1)
     trace = np.trace(gram, axis1=1, axis2=2)
     # Coincident neighbours (trace 0) still need a well-posed system: fall back to an absolute floor.
     eps = regularization * np.where(trace > 0, trace, 1.0)
@@ -55,4 +55,21 @@ def reconstruction_weights(
 
 def llr_residual(points: torch.Tensor, neighbours: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """(N, 3) residual x_i - sum_j w_ij x_j of `points` (N, 3) under fixed neighbours and weights."""
-    return points - torch.einsum("nk,nkd->nd", weights, points[neighbours])
+    return points - torch.bmm(weights.unsqueeze(1), points[neighbours]).squeeze(1)
+
+
+def normal_matrix(neighbours: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N, N) matrix A^T A of the linear map A: points -> LLR residuals (A = I - W, W_i,n(i,j) = w_ij).
+
+    sum_i |r_i(p) - r_i(q)|^2 = |A (p - q)|^2 is a quadratic form in the points, so its gradient
+    2 A^T A (p - q) is one (N, N) x (N, 3) product: the tracker forms A^T A once per frame instead of
+    gathering and scattering over the neighbours at every optimisation step."""
+    neighbours = np.asarray(neighbours, dtype=np.int64)
+    n, k = neighbours.shape
+    # Row i of A has k + 1 non-zeros: 1 at i, -w_ij at its neighbours; A^T A = sum_i a_i a_i^T adds up
+    # (k + 1)^2 products per row, far fewer than a dense (N, N) x (N, N) product.
+    columns = np.concatenate([np.arange(n)[:, None], neighbours], axis=1)
+    values = np.concatenate([np.ones((n, 1)), -np.asarray(weights, dtype=np.float64)], axis=1)
+    flat = (columns[:, :, None] * n + columns[:, None, :]).reshape(-1)
+    products = (values[:, :, None] * values[:, None, :]).reshape(-1)
+    return np.bincount(flat, weights=products, minlength=n * n).reshape(n, n)
