@@ -52,24 +52,33 @@ def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
 
 @dataclass
 class Mesh:
-    """Quads over vertices, with per-vertex unit normals and extra attributes to interpolate."""
+    """Quads over vertices, with per-vertex unit normals, per-vertex attributes to interpolate
+    (perspective-correct) and per-quad attributes (constant over a quad)."""
 
     verts: np.ndarray    # (N, 3) mm
     quads: np.ndarray    # (Q, 4) vertex indices, any winding
     normals: np.ndarray  # (N, 3)
-    attrs: np.ndarray    # (N, A) e.g. texture coordinates, tangents, material ids
+    attrs: np.ndarray    # (N, A) e.g. texture coordinates; A may be 0
+    face_attrs: np.ndarray | None = None  # (Q, F) e.g. material ids, tangents
 
     def transformed(self, rotation: np.ndarray, translation: np.ndarray) -> Mesh:
-        return Mesh(self.verts @ rotation.T + translation, self.quads, self.normals @ rotation.T, self.attrs)
+        return Mesh(self.verts @ rotation.T + translation, self.quads, self.normals @ rotation.T, self.attrs,
+                    self.face_attrs)
+
+    def shifted(self, offset: np.ndarray) -> Mesh:
+        """The same mesh with every vertex moved by `offset` (mm), e.g. into the right camera."""
+        return Mesh(self.verts + offset, self.quads, self.normals, self.attrs, self.face_attrs)
 
     @staticmethod
     def concat(meshes: list[Mesh]) -> Mesh:
         offsets = np.cumsum([0] + [len(m.verts) for m in meshes[:-1]])
+        faces = None if any(m.face_attrs is None for m in meshes) else np.concatenate([m.face_attrs for m in meshes])
         return Mesh(
             np.concatenate([m.verts for m in meshes]),
             np.concatenate([m.quads + o for m, o in zip(meshes, offsets, strict=True)]),
             np.concatenate([m.normals for m in meshes]),
             np.concatenate([m.attrs for m in meshes]),
+            faces,
         )
 
 
@@ -94,7 +103,7 @@ def axis_frame(p0: np.ndarray, p1: np.ndarray) -> tuple[float, np.ndarray, np.nd
 
 def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, material: float,
                   cap0: bool = False, cap1: bool = True) -> Mesh:
-    """A cylinder from p0 to p1 with optional flat caps; attrs = [material id]."""
+    """A cylinder from p0 to p1 with optional flat caps; face_attrs = [material id]."""
     length, a, u, v = axis_frame(p0, p1)
     ang = 2 * np.pi * np.arange(n_around) / n_around
     ring = np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v  # (n, 3) radial directions
@@ -110,30 +119,30 @@ def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, 
         k = np.arange(n_around)
         quads.append(np.stack([base + k, base + (k + 1) % n_around, np.full(n_around, base + n_around),
                                np.full(n_around, base + n_around)], axis=1))
-    return Mesh(verts, np.concatenate(quads), normals, np.full((len(verts), 1), material))
+    quads = np.concatenate(quads)
+    return Mesh(verts, quads, normals, np.zeros((len(verts), 0)), np.full((len(quads), 1), material))
+
+
+# Corners of the unit box (x, y, z in -1, 1) and its six faces as corner indices, counter-clockwise
+# seen from outside.
+_BOX_CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+_BOX_FACES = np.array([(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)])
 
 
 def box_mesh(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, material: float,
              taper: float = 1.0) -> Mesh:
     """A box (flat-shaded faces) with local axes as columns of `axes` and half sizes `half`; `taper`
     scales the +axis0 end's cross-section (a jaw narrowing toward its tip)."""
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-    local = corners * half
-    local[corners[:, 0] > 0, 1:] *= taper
-    world = centre + local @ axes.T
-    faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    verts, normals, quads = [], [], []
-    for f in faces:
-        p = world[list(f)]
-        n = np.cross(p[1] - p[0], p[3] - p[0])
-        n /= np.linalg.norm(n)
-        if np.dot(n, p.mean(0) - centre) < 0:
-            n = -n
-        quads.append(np.arange(4) + 4 * len(quads))
-        verts.append(p)
-        normals.append(np.tile(n, (4, 1)))
-    return Mesh(np.concatenate(verts), np.array(quads), np.concatenate(normals),
-                np.full((24, 1), material))
+    local = _BOX_CORNERS * half
+    local[_BOX_CORNERS[:, 0] > 0, 1:] *= taper
+    face_pts = (centre + local @ axes.T)[_BOX_FACES]  # (6, 4, 3)
+    n = np.cross(face_pts[:, 1] - face_pts[:, 0], face_pts[:, 3] - face_pts[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    outward = np.einsum("fx,fx->f", n, face_pts.mean(axis=1) - centre) >= 0
+    n *= np.where(outward, 1.0, -1.0)[:, None]
+    return Mesh(face_pts.reshape(24, 3), np.arange(24).reshape(6, 4), np.repeat(n, 4, axis=0),
+                np.zeros((24, 0)), np.full((6, 1), material))
+
 
 
 # --- rasterisation ---------------------------------------------------------------------------------
@@ -141,25 +150,40 @@ def box_mesh(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, material: f
 
 @dataclass
 class Fragments:
-    """Per-pixel samples of one layer, channel-first float32: flat pixel indices (P,), depth (P,) mm,
-    and, once `interpolate` ran, the mesh's normals then attributes (3 + A, P), perspective-correct."""
+    """Per-pixel samples of one layer: flat pixel indices (P,), depth (P,) mm, pixel coordinates, the
+    covering triangle and quad, and, once `interpolate` ran, the mesh's normals then vertex attributes
+    (3 + A, P) float32, perspective-correct."""
 
     flat: np.ndarray
     depth: np.ndarray
     px: np.ndarray
     py: np.ndarray
-    tri: np.ndarray          # (P,) index of the covering triangle
+    tri: np.ndarray          # (P,) index of the covering triangle among the drawn ones
+    quad: np.ndarray         # (P,) index of the covering quad in the mesh
     coef: np.ndarray         # (C, 3, T) screen-plane coefficients of 1/z and channel/z per triangle
     values: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> Fragments:
         return Fragments(self.flat[keep], self.depth[keep], self.px[keep], self.py[keep], self.tri[keep],
-                         self.coef, None if self.values is None else self.values[:, keep])
+                         self.quad[keep], self.coef, None if self.values is None else self.values[:, keep])
 
     def interpolate(self) -> Fragments:
-        g = np.take(self.coef[1:], self.tri, axis=2)  # (C - 1, 3, P)
-        self.values = (g[:, 0] * self.px + g[:, 1] * self.py + g[:, 2]) * self.depth
+        # One 1-D gather per coefficient: much faster than a gather along the last axis of coef.
+        count = self.coef.shape[0] - 1
+        values = np.empty((count, len(self.flat)), np.float32)
+        for c in range(count):
+            a, b, k = self.coef[c + 1]
+            v = a.take(self.tri)
+            v *= self.px
+            v += b.take(self.tri) * self.py
+            v += k.take(self.tri)
+            np.multiply(v, self.depth, out=values[c])
+        self.values = values
         return self
+
+    def face(self, face_attrs: np.ndarray) -> np.ndarray:
+        """(F, P) per-quad attributes (Q, F) of the covering quads."""
+        return face_attrs.T.take(self.quad, axis=1)
 
     @property
     def normal(self) -> np.ndarray:
@@ -174,8 +198,14 @@ class Fragments:
     def position(self, camera: PinholeCamera) -> np.ndarray:
         """(3, P) camera-frame positions (mm)."""
         z = self.depth
-        return np.stack([(self.px - np.float32(camera.cx)) * z / np.float32(camera.fx),
-                         (self.py - np.float32(camera.cy)) * z / np.float32(camera.fy), z])
+        return np.stack([(self.px - np.float32(camera.cx)) * (z / np.float32(camera.fx)),
+                         (self.py - np.float32(camera.cy)) * (z / np.float32(camera.fy)), z])
+
+    @staticmethod
+    def empty() -> Fragments:
+        i = np.zeros(0, np.intp)
+        f = np.zeros(0, np.float32)
+        return Fragments(i, f, f, f, i, i, np.zeros((1, 3, 0), np.float32))
 
 
 def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -190,7 +220,7 @@ def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarr
     a = (df1 * dy2[:, None] - df2 * dy1[:, None]) * inv
     b = (dx1[:, None] * df2 - dx2[:, None] * df1) * inv
     c = f[:, 0] - a * x[:, :1] - b * y[:, :1]
-    return np.stack([a, b, c], axis=0).transpose(2, 0, 1).astype(np.float32)
+    return np.ascontiguousarray(np.stack([a, b, c], axis=0).transpose(2, 0, 1), dtype=np.float32)
 
 
 def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) -> Fragments:
@@ -201,35 +231,53 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     z = v[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([camera.fx * v[:, 0] / z + camera.cx, camera.fy * v[:, 1] / z + camera.cy], axis=1)
+    # Per-quad tests on corner values laid out (4, Q): 1-D gathers, cheap reductions over 4 rows.
     q = mesh.quads
-    qz = z[q]
-    ok = (qz > _NEAR_MM).all(axis=1)
-    quv = uv[q]
+    qt = np.ascontiguousarray(q.T)
+    qz = z.take(qt)
+    qx = uv[:, 0].take(qt)
+    qy = uv[:, 1].take(qt)
     with np.errstate(invalid="ignore"):
-        ok &= (quv[..., 0].max(1) >= -1) & (quv[..., 0].min(1) <= camera.width)
-        ok &= (quv[..., 1].max(1) >= -1) & (quv[..., 1].min(1) <= camera.height)
-    if cull_backfaces:
-        centre = v[q].mean(axis=1)
-        normal = mesh.normals[q].sum(axis=1)
-        ok &= np.einsum("qx,qx->q", centre, normal) < 0
+        ok = (qz.min(axis=0) > _NEAR_MM) & (qx.max(axis=0) >= -1) & (qx.min(axis=0) <= camera.width)
+        ok &= (qy.max(axis=0) >= -1) & (qy.min(axis=0) <= camera.height)
+    if cull_backfaces:  # the quad faces away if (sum of corners) . (sum of corner normals) >= 0
+        facing = np.zeros(len(q))
+        for k in range(3):
+            facing += v[:, k].take(qt).sum(axis=0) * mesh.normals[:, k].take(qt).sum(axis=0)
+        ok &= facing < 0
     ids = np.nonzero(ok)[0]
-    ids = ids[np.argsort(-qz[ids].mean(axis=1), kind="stable")]  # far to near
+    if len(ids) == 0:
+        return Fragments.empty()
+    ids = ids[np.argsort(-qz[:, ids].sum(axis=0), kind="stable")]  # far to near
     # Grow each quad by half a pixel about its centre so that neighbours overlap instead of leaving
     # cracks; the overlap is resolved by the drawing order and the planes extrapolate exactly.
-    quad_uv = quv[ids]
+    quad_uv = np.stack([qx[:, ids].T, qy[:, ids].T], axis=2)
     centre_uv = quad_uv.mean(axis=1, keepdims=True)
     rel = quad_uv - centre_uv
     grow = 0.6 / np.maximum(np.linalg.norm(rel, axis=2, keepdims=True), 1e-6)
     pts = np.round((quad_uv + rel * grow) * (1 << _SHIFT)).astype(np.int32)
-    # Draw each quad's rank in the drawing order; only drawn quads get triangle planes below.
-    qid = np.full((camera.height, camera.width), -1, dtype=np.int32)
+    # Draw each quad's rank in the drawing order into a buffer covering only the drawn quads' bounding
+    # box (the image's other pixels never need looking at); only drawn quads get triangle planes below.
+    lo = np.maximum(pts.min(axis=(0, 1)) >> _SHIFT, 0)
+    hi = np.minimum((pts.max(axis=(0, 1)) >> _SHIFT) + 2, (camera.width, camera.height))
+    if (hi <= lo).any():
+        return Fragments.empty()
+    qid = np.full((hi[1] - lo[1], hi[0] - lo[0]), -1, dtype=np.int32)
+    pts -= (lo << _SHIFT).astype(np.int32)
     fill = cv2.fillConvexPoly
     for rank, poly in enumerate(pts):
         fill(qid, poly, rank, cv2.LINE_8, _SHIFT)
 
-    flat = np.flatnonzero(qid >= 0)
-    rank = qid.ravel()[flat]
-    py_i, px_i = np.divmod(flat, camera.width)
+    local = np.flatnonzero(qid >= 0)
+    rank = qid.ravel().take(local)
+    # Row and column of each covered pixel: (k + 0.5) / w lies strictly inside (row, row + 1), far
+    # from float rounding, and a float multiply is much cheaper than an integer divmod.
+    bw = qid.shape[1]
+    py_i = ((local + 0.5) * (1.0 / bw)).astype(np.intp)
+    px_i = local - py_i * bw
+    px_i += lo[0]
+    py_i += lo[1]
+    flat = py_i * camera.width + px_i
     px = px_i.astype(np.float32)
     py = py_i.astype(np.float32)
     # Which triangle: the side of the 0-2 diagonal that vertex 3 lies on.
@@ -237,8 +285,7 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     ex, ey = c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
     side_d = np.sign(ex * (d[:, 1] - a[:, 1]) - ey * (d[:, 0] - a[:, 0]))
     e = np.stack([-ey * side_d, ex * side_d, (ey * a[:, 0] - ex * a[:, 1]) * side_d]).astype(np.float32)
-    eq = np.take(e, rank, axis=1)
-    second = (eq[0] * px + eq[1] * py + eq[2]) > 0
+    second = (e[0].take(rank) * px + e[1].take(rank) * py + e[2].take(rank)) > 0
     tri = 2 * rank + second
     # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every drawn quad.
     dq = q[ids]
@@ -248,9 +295,13 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     with np.errstate(invalid="ignore"):
         coef = _plane_coefficients(uv[tri_verts, 0], uv[tri_verts, 1], chans[tri_verts])
     coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
-    g = np.take(coef[0], tri, axis=1)
-    depth = 1.0 / np.maximum(g[0] * px + g[1] * py + g[2], 1e-9)
-    return Fragments(flat, depth.astype(np.float32), px, py, tri, coef)
+    a0, b0, c0 = coef[0]
+    inv_depth = a0.take(tri) * px
+    inv_depth += b0.take(tri) * py
+    inv_depth += c0.take(tri)
+    depth = 1.0 / np.maximum(inv_depth, np.float32(1e-9))
+    return Fragments(flat, depth, px, py, tri, ids.take(rank), coef)
+
 
 
 # --- textures ---------------------------------------------------------------------------------------
@@ -323,24 +374,30 @@ class Palette:
 
 @dataclass
 class Texture:
-    """Material textures sampled by (u, v) pixel coordinates; u wraps around."""
+    """Material textures sampled by (u, v) pixel coordinates; u wraps around. Albedo and gloss share
+    one 4-channel map (OpenCV remaps 4 channels about twice as fast as 3)."""
 
-    albedo: np.ndarray  # (H, W, 3) float32 linear RGB
-    extra: np.ndarray   # (H, W, 3) float32: gloss, bump d/du, bump d/dv
+    albedo_gloss: np.ndarray  # (H, W, 4) float32: linear RGB albedo, gloss
+    bump: np.ndarray          # (H, W, 2) float32: bump d/du, d/dv
 
-    def sample(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Albedo (3, P) and extras (3, P) at texture pixel coordinates u, v (P,)."""
+    @property
+    def albedo(self) -> np.ndarray:
+        return self.albedo_gloss[..., :3]
+
+    def sample(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Albedo (3, P), gloss (P,) and bump gradients (2, P) at texture pixel coordinates u, v (P,)."""
         n = len(u)
-        cols = 1024
+        cols = 1024  # remap maps are images: lay the samples out in rows
         rows = max(1, -(-n // cols))
         mx = np.zeros(rows * cols, np.float32)
         my = np.zeros(rows * cols, np.float32)
         mx[:n] = u
         my[:n] = v
         mx, my = mx.reshape(rows, cols), my.reshape(rows, cols)
-        alb = cv2.remap(self.albedo, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        ext = cv2.remap(self.extra, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-        return alb.reshape(-1, 3)[:n].T, ext.reshape(-1, 3)[:n].T
+        ag = cv2.remap(self.albedo_gloss, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        bump = cv2.remap(self.bump, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        ag = ag.reshape(-1, 4)[:n].T
+        return ag[:3], ag[3], bump.reshape(-1, 2)[:n].T
 
 
 def make_texture(rng: np.random.Generator, height: int, width: int, palette: Palette) -> Texture:
@@ -367,8 +424,7 @@ def make_texture(rng: np.random.Generator, height: int, width: int, palette: Pal
     bump = fractal_noise(rng, height, width, 14, 2)
     gu = (np.roll(bump, -1, axis=1) - np.roll(bump, 1, axis=1)) / 2.0  # wraps around the tube
     gv = np.gradient(bump, axis=0)
-    extra = np.stack([gloss, gu, gv], axis=-1).astype(np.float32)
-    return Texture(albedo, extra)
+    return Texture(np.dstack([albedo, gloss]).astype(np.float32), np.dstack([gu, gv]).astype(np.float32))
 
 
 # --- shading ----------------------------------------------------------------------------------------
@@ -395,7 +451,7 @@ _TONE_LUT = np.round(_tone_curve(np.linspace(0, _TONE_MAX, _TONE_BINS))).astype(
 def tone_map(linear: np.ndarray) -> np.ndarray:
     """Linear radiance -> display value uint8 (soft shoulder, then sRGB-like gamma), by table."""
     idx = np.clip(linear * np.float32((_TONE_BINS - 1) / _TONE_MAX), 0, _TONE_BINS - 1).astype(np.int32)
-    return _TONE_LUT[idx]
+    return _TONE_LUT.take(idx)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -403,7 +459,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _normalize(a: np.ndarray) -> np.ndarray:
-    return a / np.maximum(np.sqrt(_dot(a, a)), np.float32(1e-12))
+    return a * (np.float32(1.0) / np.sqrt(np.maximum(_dot(a, a), np.float32(1e-24))))
 
 
 def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
@@ -415,8 +471,8 @@ def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: n
     lp = light.position.astype(np.float32)[:, None]
     to_light = lp - position
     dist2 = _dot(to_light, to_light)
-    l = to_light / np.sqrt(dist2)
-    view = _normalize(-position)
+    l = to_light * (np.float32(1.0) / np.sqrt(dist2))
+    view = position * (np.float32(-1.0) / np.sqrt(_dot(position, position)))
     ndl = _dot(normal, l)
     diffuse = np.clip((ndl + np.float32(wrap)) / np.float32(1 + wrap), 0, None)
     h = _normalize(l + view)
@@ -426,8 +482,12 @@ def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: n
     if glint:
         spec = spec + np.float32(glint) * gloss * gloss * np.exp(np.float32(8.0) * shininess * log_ndh)
     falloff = np.float32(light.intensity) / dist2
-    tint = np.ones((3, 1), np.float32) if specular_tint is None else np.asarray(specular_tint, np.float32)[:, None]
-    return albedo * (diffuse * falloff + np.float32(ambient)) + (spec * falloff) * tint
+    spec *= falloff
+    if specular_tint is not None:
+        spec = spec * np.asarray(specular_tint, np.float32)[:, None]
+    diffuse *= falloff
+    diffuse += np.float32(ambient)
+    return albedo * diffuse + spec
 
 
 def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
@@ -468,8 +528,13 @@ class NoisePool:
         return pos[y:y + self.h, x:x + self.w], neg[y:y + self.h, x:x + self.w]
 
 
-def finish(img: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma: float) -> np.ndarray:
-    """Display image (uint8) with optical blur and sensor noise (saturating)."""
+def finish(planes: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma: float) -> np.ndarray:
+    """Display image (H, W, 3) uint8 from colour planes (3, H, W) uint8, with optical blur and sensor
+    noise (saturating). The layers are composited as planes: scattering one byte per pixel into each
+    plane is three times faster than scattering RGB triplets."""
+    img = cv2.merge(list(planes))
     if blur_sigma > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
+        # A 5-tap kernel holds a Gaussian of sigma <= 0.8 px to within 2.5 sigma (and runs in half the
+        # time of the kernel OpenCV would size for it).
+        img = cv2.GaussianBlur(img, (5, 5), blur_sigma)
     return cv2.subtract(cv2.add(img, noise[0]), noise[1])

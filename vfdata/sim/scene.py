@@ -43,6 +43,9 @@ MATERIALS = {
     3: ((0.05, 0.05, 0.06), 0.4, 20.0),     # sensor body and post
 }
 SHAFT, STEEL, CLAMP, SENSOR = 0, 1, 2, 3
+_ALBEDO = np.array([MATERIALS[m][0] for m in range(len(MATERIALS))], np.float32).T  # (3, materials)
+_GLOSS = np.array([MATERIALS[m][1] for m in range(len(MATERIALS))], np.float32)
+_SHININESS = np.array([MATERIALS[m][2] for m in range(len(MATERIALS))], np.float32)
 
 
 @dataclass
@@ -104,8 +107,8 @@ class StereoFrame:
 
 @dataclass
 class _StaticView:
-    color: np.ndarray        # (H*W, 3) uint8 display values
-    depth: np.ndarray        # (H*W,) float32 mm, 0 where nothing
+    color: np.ndarray        # (3, H*W) uint8 display values (planes)
+    depth: np.ndarray        # (H*W,) float32 mm, inf where nothing
     vignette: np.ndarray     # (H*W,) float32
 
 
@@ -134,6 +137,7 @@ class SceneRenderer:
         theta = np.linspace(0.0, 2 * np.pi, spec.dense_theta + 1)
         self.surface: SurfaceMap = tube.surface_map(s, theta)
         self.tube_quads = grid_quads(spec.dense_s + 1, spec.dense_theta + 1, wrap_cols=False)
+        self.tube_quads_t = np.ascontiguousarray(self.tube_quads.T)
         uu, vv = np.meshgrid(theta / (2 * np.pi) * tw, s / tube.arc_length_mm * (th - 1), indexing="xy")
         apex_uv = np.stack([theta / (2 * np.pi) * tw, np.full_like(theta, th - 1)], axis=1)
         self.tube_uv = np.concatenate([np.stack([uu.ravel(), vv.ravel()], 1), apex_uv])
@@ -188,8 +192,8 @@ class SceneRenderer:
         fixture = self.fixture.transformed(np.eye(3), -shift)
         light = self._light(view)
         hw = cam.height * cam.width
-        depth = np.full(hw, np.inf)
-        color = np.zeros((hw, 3), np.uint8)
+        depth = np.full(hw, np.inf, np.float32)
+        color = np.zeros((3, hw), np.uint8)
         vig = vignette(cam).ravel()
         bed_frag = rasterize(cam, bed, cull_backfaces=False)
         fix_frag = rasterize(cam, fixture)
@@ -197,25 +201,22 @@ class SceneRenderer:
         fix_frag = fix_frag.subset(fix_frag.depth < depth[fix_frag.flat]).interpolate()
         depth[fix_frag.flat] = fix_frag.depth
         bed_frag = bed_frag.subset(depth[bed_frag.flat] == bed_frag.depth).interpolate()
-        albedo, extra = self.bed_texture.sample(bed_frag.attrs[0], bed_frag.attrs[1])
+        albedo, gloss, bump = self.bed_texture.sample(bed_frag.attrs[0], bed_frag.attrs[1])
         tangent = np.tile(self.r_co[:, 2:3].astype(np.float32), (1, len(bed_frag.flat)))
-        normal = bumped_normals(bed_frag.normal, tangent, extra[1], extra[2], 3.0 * spec.bump_strength)
-        rad = shade(bed_frag.position(cam), normal, albedo, extra[0], spec.bed_palette.shininess, light,
+        normal = bumped_normals(bed_frag.normal, tangent, bump[0], bump[1], 3.0 * spec.bump_strength)
+        rad = shade(bed_frag.position(cam), normal, albedo, gloss, spec.bed_palette.shininess, light,
                     glint=3.0)
-        color[bed_frag.flat] = tone_map(rad * vig[bed_frag.flat]).T
-        color[fix_frag.flat] = self._shade_materials(fix_frag, cam, light, vig[fix_frag.flat]).T
-        depth[~np.isfinite(depth)] = 0.0
-        return _StaticView(color, depth.astype(np.float32), vig)
+        color[:, bed_frag.flat] = tone_map(rad * vig[bed_frag.flat])
+        color[:, fix_frag.flat] = self._shade_materials(fix_frag, fixture, cam, light, vig[fix_frag.flat])
+        return _StaticView(color, depth, vig)
 
     @staticmethod
-    def _shade_materials(frag: Fragments, cam: PinholeCamera, light: Light, vignetting: np.ndarray) -> np.ndarray:
-        """(3, P) display values of instrument / fixture fragments by material id."""
-        mat = np.rint(frag.attrs[0]).astype(int)
-        albedo = np.array([MATERIALS[m][0] for m in range(4)], np.float32)[mat].T
-        gloss = np.array([MATERIALS[m][1] for m in range(4)], np.float32)[mat]
-        shin = np.array([MATERIALS[m][2] for m in range(4)], np.float32)[mat]
-        return tone_map(shade(frag.position(cam), frag.normal, albedo, gloss, shin, light, wrap=0.0,
-                              ambient=0.03) * vignetting)
+    def _shade_materials(frag: Fragments, mesh: Mesh, cam: PinholeCamera, light: Light,
+                         vignetting: np.ndarray) -> np.ndarray:
+        """(3, P) display values of instrument / fixture fragments by their quads' material ids."""
+        mat = np.rint(frag.face(mesh.face_attrs)[0]).astype(np.intp)
+        return tone_map(shade(frag.position(cam), frag.normal, _ALBEDO.take(mat, axis=1), _GLOSS.take(mat),
+                              _SHININESS.take(mat), light, wrap=0.0, ambient=0.03) * vignetting)
 
     # --- dynamic objects -----------------------------------------------------------------------------
 
@@ -233,9 +234,12 @@ class SceneRenderer:
         cols = p.shape[1]
         verts = np.concatenate([p.reshape(-1, 3), np.tile(apex, (cols, 1))])
         normals = np.concatenate([n.reshape(-1, 3), np.tile(axis, (cols, 1))])
-        tangent = ps / np.maximum(np.linalg.norm(ps, axis=-1, keepdims=True), 1e-9)
-        tangent = np.concatenate([tangent.reshape(-1, 3), tangent[-1]])
-        return Mesh(verts, self.tube_quads, normals, np.concatenate([self.tube_uv, tangent], axis=1))
+        # The direction along the tube (for the bump map's tangent frame), one per quad: the quads are
+        # small, and the shading orthogonalises it against the interpolated normal anyway.
+        along = np.concatenate([ps.reshape(-1, 3), ps[-1]])
+        q = self.tube_quads_t
+        tangent = along[q[0]] + along[q[1]] + along[q[2]] + along[q[3]]
+        return Mesh(verts, self.tube_quads, normals, self.tube_uv, tangent.astype(np.float32))
 
     def _shaft(self, p0: np.ndarray, p1: np.ndarray, radius: float = 4.2, n_around: int = 20,
                pieces: int = 10) -> Mesh:
@@ -261,7 +265,7 @@ class SceneRenderer:
         normals[-1] = -a
         # The cap's ring shares the first ring's vertices; its quads use the side normals there,
         # which is close enough for a 4 mm disc seen mostly edge-on.
-        return Mesh(verts, quads, normals, np.full((len(verts), 1), float(SHAFT)))
+        return Mesh(verts, quads, normals, np.zeros((len(verts), 0)), np.full((len(quads), 1), float(SHAFT)))
 
     def instrument_mesh(self, grasp_o: np.ndarray, twist_rad: float, jaw_rad: float) -> Mesh:
         """Grasper (jaws, wrist, shaft) in the left camera frame, for a grasp point (object frame),
@@ -298,32 +302,36 @@ class SceneRenderer:
         tool = self.instrument_mesh(grasp_o, twist_rad, jaw_rad)
         images, depth_left, mask_left = [], None, None
         for view in range(2):
-            shift = self._view_offset(view)
+            shift = -self._view_offset(view)
             static = self.views[view]
             light = self._light(view)
-            t_frag = rasterize(cam, Mesh(tube.verts - shift, tube.quads, tube.normals, tube.attrs))
-            i_frag = rasterize(cam, Mesh(tool.verts - shift, tool.quads, tool.normals, tool.attrs))
+            t_frag = rasterize(cam, tube.shifted(shift))
+            i_frag = rasterize(cam, tool.shifted(shift))
+            # Per-pixel depth test against the static layer, then the instrument; the tube is seen
+            # where its depth is the final one.
             depth = static.depth.copy()
-            depth[depth == 0] = np.inf
-            t_frag = t_frag.subset(t_frag.depth < depth[t_frag.flat])
-            depth[t_frag.flat] = t_frag.depth
-            i_frag = i_frag.subset(i_frag.depth < depth[i_frag.flat]).interpolate()
+            depth[t_frag.flat] = np.minimum(t_frag.depth, depth.take(t_frag.flat))
+            i_frag = i_frag.subset(i_frag.depth < depth.take(i_frag.flat)).interpolate()
             depth[i_frag.flat] = i_frag.depth
-            t_frag = t_frag.subset(depth[t_frag.flat] == t_frag.depth).interpolate()
+            t_frag = t_frag.subset(depth.take(t_frag.flat) == t_frag.depth).interpolate()
+
             color = static.color.copy()
-            albedo, extra = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
-            normal = bumped_normals(t_frag.normal, t_frag.attrs[2:5], extra[1], extra[2], spec.bump_strength)
-            rad = shade(t_frag.position(cam), normal, albedo, extra[0], spec.tube_palette.shininess, light,
-                        glint=3.0)
-            color[t_frag.flat] = tone_map(rad * static.vignette[t_frag.flat]).T
-            color[i_frag.flat] = self._shade_materials(i_frag, cam, light, static.vignette[i_frag.flat]).T
-            img = finish(color.reshape(cam.height, cam.width, 3), self.noise.draw(self.rng), spec.blur_sigma)
+            planes = list(color)
+            albedo, gloss, bump = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
+            normal = bumped_normals(t_frag.normal, t_frag.face(tube.face_attrs), bump[0], bump[1],
+                                    spec.bump_strength)
+            rad = shade(t_frag.position(cam), normal, albedo, gloss, spec.tube_palette.shininess, light, glint=3.0)
+            for plane, values in zip(planes, tone_map(rad * static.vignette.take(t_frag.flat)), strict=True):
+                plane[t_frag.flat] = values
+            tool_color = self._shade_materials(i_frag, tool, cam, light, static.vignette.take(i_frag.flat))
+            for plane, values in zip(planes, tool_color, strict=True):
+                plane[i_frag.flat] = values
+            img = finish(color.reshape(3, cam.height, cam.width), self.noise.draw(self.rng), spec.blur_sigma)
             images.append(img)
             if view == 0:
-                depth[~np.isfinite(depth)] = 0.0
-                depth_left = depth.reshape(cam.height, cam.width).astype(np.float32)
+                depth[np.isinf(depth)] = 0.0
+                depth_left = depth.reshape(cam.height, cam.width)
                 mask_left = np.zeros(cam.height * cam.width, bool)
                 mask_left[t_frag.flat] = True
                 mask_left = mask_left.reshape(cam.height, cam.width)
         return StereoFrame(images[0], images[1], depth_left, mask_left)
-
