@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import logging
 import re
+import struct
 from array import array
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -41,6 +43,7 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.calibration import StereoCalibration
+from vfdata.conversion.bag_index import ImageHead, IndexedBag, image_head, open_indexed_bag
 from vfdata.conversion.ordered_map import ordered_map
 from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
 from vfdata.errors import InputError
@@ -61,6 +64,8 @@ from vfdata.recording.writer import McapWriter
 log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000
+_STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
+_U32 = struct.Struct("<I")
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -395,51 +400,103 @@ class BagScan:
     pose: Series | None
     left_info: object | None  # the first rosbags CameraInfo message of each side
     right_info: object | None
+    indexed: IndexedBag | None = None  # random access to the messages, where the storage allows it
 
 
 def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: bool = False,
              progress: bool = True) -> BagScan:
-    """One streaming pass: image stamps, force, pose and the first camera info of each side (and the
-    receive times of every topic when `all_topics`, for `inspect-bag`)."""
+    """Image stamps, force, pose and the first camera info of each side (and the receive times of every
+    topic when `all_topics`, for `inspect-bag`). Where the storage allows random access (ROS 1 bags
+    with uncompressed chunks, ROS 2 sqlite3 bags: `bag_index`), the images' pixels are not read here
+    and the returned scan keeps that access open for the convert pass (`BagScan.indexed`; close it
+    with `close_scan`); otherwise this is one streaming pass over the bag."""
     types = topic_types(reader)
     wanted = {choice.left, choice.right, choice.force, choice.left_info, choice.right_info, choice.pose} - {None}
     topics = set(types) if all_topics else wanted
-    connections = [c for c in reader.connections if c.topic in topics]
     counts = {name: info.msgcount for name, info in reader.topics.items()}
-    receive = {t: array("q") for t in topics}
     left, right = ImageStream(choice.left, types[choice.left]), ImageStream(choice.right, types[choice.right])
     images = {choice.left: left, choice.right: right}
-    infos: dict[str, object] = {}
+    infos = {choice.left_info, choice.right_info} - {None}
     series = {choice.force: _SeriesReader(reader, path, choice.force, 6)}
     if choice.pose is not None:
         series[choice.pose] = _SeriesReader(reader, path, choice.pose, 7)
-    total = sum(counts[t] for t in topics)
-    with tqdm(total=total, desc=f"scan {path.name}", unit="msg", disable=not progress, mininterval=0.5) as bar:
-        for connection, receive_ns, raw in bag_messages(reader, path, connections):
-            topic = connection.topic
-            receive[topic].append(receive_ns)
-            bar.update()
-            if topic in series:
-                series[topic].add(connection, receive_ns, raw)
-            elif topic in images:
-                _scan_image(path, images[topic], _deserialize(reader, path, raw, connection), receive_ns)
-            elif topic in wanted:  # camera info: the first message of each side describes the camera
-                if topic not in infos:
-                    infos[topic] = _deserialize(reader, path, raw, connection)
-    for stream in (left, right):
-        if stream.count == 0:
-            raise InputError(path, f"{stream.topic} has no messages")
-    force = series[choice.force].result()
-    pose = series[choice.pose].result() if choice.pose is not None else None
-    if pose is not None:
-        norms = np.linalg.norm(pose.values[:, 3:], axis=1)
-        if (norms < 1e-6).any():
-            raise InputError(path, f"{choice.pose}: message {int(np.argmax(norms < 1e-6))}: quaternion has zero length")
-        pose.values[:, 3:] /= norms[:, None]
-    return BagScan(
-        path, bag_kind(path), choice, counts, {t: np.frombuffer(v, np.int64) for t, v in receive.items()},
-        left, right, force, pose, infos.get(choice.left_info), infos.get(choice.right_info),
-    )
+    indexed = open_indexed_bag(reader, path, topics)
+    try:
+        with tqdm(total=sum(counts[t] for t in topics), desc=f"scan {path.name}", unit="msg", disable=not progress,
+                  mininterval=0.5) as bar:
+            if indexed is not None:
+                receive, first_infos = _scan_indexed(reader, path, indexed, topics, images, series, infos, bar)
+            else:
+                receive, first_infos = _scan_streaming(reader, path, topics, images, series, infos, bar)
+        for stream in (left, right):
+            if stream.count == 0:
+                raise InputError(path, f"{stream.topic} has no messages")
+        force = series[choice.force].result()
+        pose = series[choice.pose].result() if choice.pose is not None else None
+        if pose is not None:
+            norms = np.linalg.norm(pose.values[:, 3:], axis=1)
+            if (norms < 1e-6).any():
+                raise InputError(path, f"{choice.pose}: message {int(np.argmax(norms < 1e-6))}: quaternion has "
+                                       "zero length")
+            pose.values[:, 3:] /= norms[:, None]
+    except BaseException:
+        if indexed is not None:
+            indexed.close()
+        raise
+    return BagScan(path, bag_kind(path), choice, counts, receive, left, right, force, pose,
+                   first_infos.get(choice.left_info), first_infos.get(choice.right_info), indexed)
+
+
+def close_scan(scan: BagScan) -> None:
+    """Release the random access a scan kept open (a no-op for a streamed scan)."""
+    if scan.indexed is not None:
+        scan.indexed.close()
+        scan.indexed = None
+
+
+def _scan_streaming(reader: AnyReader, path: Path, topics: set[str], images: dict[str, ImageStream],
+                    series: dict[str, _SeriesReader], infos: set[str], bar: tqdm,
+                    ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """The scan as one pass over `rosbags`' message iterator: every image is read and deserialised."""
+    receive = {t: array("q") for t in topics}
+    first_infos: dict[str, object] = {}
+    for connection, receive_ns, raw in bag_messages(reader, path, [c for c in reader.connections if c.topic in topics]):
+        topic = connection.topic
+        receive[topic].append(receive_ns)
+        bar.update()
+        if topic in series:
+            series[topic].add(connection, receive_ns, raw)
+        elif topic in images:
+            msg = _deserialize(reader, path, raw, connection)
+            _scan_image(path, images[topic], _head_of(msg), receive_ns, lambda msg=msg: msg)
+        elif topic in infos and topic not in first_infos:  # the first message describes the camera
+            first_infos[topic] = _deserialize(reader, path, raw, connection)
+    return {t: np.frombuffer(v, np.int64) for t, v in receive.items()}, first_infos
+
+
+def _scan_indexed(reader: AnyReader, path: Path, indexed: IndexedBag, topics: set[str],
+                  images: dict[str, ImageStream], series: dict[str, _SeriesReader], infos: set[str], bar: tqdm,
+                  ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """The scan through random access: only the first bytes of each image (stamp, encoding, size), the
+    force and pose series in blocks, the first camera info of each side."""
+    connection_of = {c.topic: c for c in reader.connections}
+    receive = {t: indexed.receive_ns(t) for t in topics}
+
+    def load(topic: str, i: int):
+        return _deserialize(reader, path, bytes(indexed.message(topic, i)), connection_of[topic])
+
+    for topic, stream in images.items():
+        for i, receive_ns in enumerate(receive[topic].tolist()):
+            message = partial(load, topic, i)
+            head = image_head(indexed.head(topic, i), stream.msgtype, reader.is2)
+            _scan_image(path, stream, head or _head_of(message()), receive_ns, message)
+        bar.update(len(receive[topic]))
+    for topic, reader_of in series.items():
+        for receive_ns, payloads in indexed.payload_blocks(topic):
+            reader_of.add_block(connection_of[topic], receive_ns, payloads)
+            bar.update(len(receive_ns))
+    first_infos = {topic: load(topic, 0) for topic in infos if len(receive[topic])}
+    return receive, first_infos
 
 
 def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[object, int, bytes]]:
@@ -459,21 +516,31 @@ def _deserialize(reader: AnyReader, path: Path, raw: bytes, connection):
         raise InputError(path, f"{connection.topic}: message cannot be decoded ({_first_line(exc)})") from None
 
 
-def _scan_image(path: Path, stream: ImageStream, msg, receive_ns: int) -> None:
+def _head_of(msg) -> ImageHead:
+    """The scanned fields of a deserialised Image or CompressedImage message."""
+    if hasattr(msg, "encoding"):
+        return ImageHead(header_stamp_ns(msg), msg.encoding, int(msg.width), int(msg.height))
+    return ImageHead(header_stamp_ns(msg), msg.format)
+
+
+def _scan_image(path: Path, stream: ImageStream, head: ImageHead, receive_ns: int, message: Callable[[], object],
+                ) -> None:
+    """Record one image message of `stream`; `message()` gives the whole deserialised message, needed
+    for a compressed image only (its size is known once decoded)."""
     index = stream.count
-    stream.header_ns.append(header_stamp_ns(msg))
+    stream.header_ns.append(head.stamp_ns)
     stream.receive_ns.append(receive_ns)
+    encoding = head.encoding
     if stream.msgtype == IMAGE:
-        encoding, width, height = msg.encoding, int(msg.width), int(msg.height)
+        width, height = head.width, head.height
         if encoding not in RAW_ENCODINGS:
             raise InputError(path, f"{stream.topic}: message {index}: unsupported image encoding '{encoding}' "
                                    f"(supported: {', '.join(RAW_ENCODINGS)})")
     else:
-        encoding = msg.format
         if index and encoding == stream.encoding:
             return  # decoding every compressed image twice would cost; pass 2 checks each size
         try:
-            image = compressed_to_bgr(encoding, msg.data)
+            image = compressed_to_bgr(encoding, message().data)
         except UnsupportedImage as exc:
             raise InputError(path, f"{stream.topic}: message {index}: {exc}") from None
         height, width = image.shape[:2]
@@ -494,7 +561,7 @@ def _pose_fields(msg):
 class _SeriesReader:
     """Collects a stamped force or pose series from raw payloads. At 1 kHz the per-message cost
     matters, so messages whose body is the header and then float64s only (WrenchStamped, PoseStamped)
-    are decoded `batch` at a time with numpy when they have one frame_id, the usual case; other
+    are decoded a block at a time with numpy when they have one frame_id, the usual case; other
     messages (TransformStamped, changing frame ids) go through rosbags one by one."""
 
     def __init__(self, reader: AnyReader, path: Path, topic: str, width: int, batch: int = 4096):
@@ -505,28 +572,38 @@ class _SeriesReader:
         self._connection = None
 
     def add(self, connection, receive_ns: int, raw: bytes) -> None:
+        """One message, as the streaming scan reads them (decoded `batch` at a time)."""
         self._connection = connection
         self.receive.append(receive_ns)
         self._raw.append(raw)
         if len(self._raw) >= self.batch:
             self._flush()
 
+    def add_block(self, connection, receive_ns: np.ndarray, payloads: np.ndarray | list[bytes]) -> None:
+        """A block of messages in bag order: payloads as an (n, L) uint8 array or a list of bytes."""
+        self._flush()
+        self._connection = connection
+        self.receive.frombytes(np.asarray(receive_ns, np.int64).tobytes())
+        self._decode(payloads)
+
     def _flush(self) -> None:
         raws, self._raw = self._raw, []
-        if not raws:
-            return
-        first = _deserialize(self.reader, self.path, raws[0], self._connection)
+        if raws:
+            self._decode(raws)
+
+    def _decode(self, payloads: np.ndarray | list[bytes]) -> None:
+        first = _deserialize(self.reader, self.path, bytes(payloads[0]), self._connection)
         decoded = None
         if hasattr(first, "wrench") or hasattr(first, "pose"):
-            decoded = _decode_fixed_batch(raws, self.width, self.ros2)
+            decoded = _decode_fixed_batch(payloads, self.width, self.ros2)
         if decoded is not None:
             stamps, values = decoded
-            self.header.extend(stamps.tolist())
-            self.values.extend(values.ravel().tolist())
+            self.header.frombytes(stamps.astype(np.int64).tobytes())
+            self.values.frombytes(np.ascontiguousarray(values, np.float64).tobytes())
             self.frames.add(first.header.frame_id)
             return
-        for raw in raws:
-            msg = _deserialize(self.reader, self.path, raw, self._connection)
+        for raw in payloads:
+            msg = _deserialize(self.reader, self.path, bytes(raw), self._connection)
             self.header.append(header_stamp_ns(msg))
             if hasattr(msg, "wrench"):
                 f, t = msg.wrench.force, msg.wrench.torque
@@ -554,27 +631,35 @@ class _SeriesReader:
         return Series(self.topic, stamps[keep], table[keep], frame_id, fallback, int((~keep).sum()))
 
 
-def _decode_fixed_batch(raws: list[bytes], n_doubles: int, ros2: bool) -> tuple[np.ndarray, np.ndarray] | None:
+def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2: bool,
+                        ) -> tuple[np.ndarray, np.ndarray] | None:
     """Header stamps (N,) and values (N, n_doubles) of messages that are a std_msgs/Header and then
-    `n_doubles` float64, all of one length; None when they do not fit that layout."""
-    length = len(raws[0])
-    if any(len(raw) != length for raw in raws):
+    `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes); None when they
+    do not fit that layout."""
+    if isinstance(payloads, list):
+        length = len(payloads[0])
+        if any(len(raw) != length for raw in payloads):
+            return None
+        table = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
+    else:
+        table = payloads
+    count, length = table.shape
+    # One frame_id for the whole block (its length and bytes after the stamp), as the caller assumes.
+    name_length = int(table[0, 12:16].copy().view("<u4")[0]) if length >= 16 else 0
+    name = slice(12, 16 + name_length)
+    if length < 16 or 16 + name_length > length or (table[:, name] != table[0, name]).any():
         return None
-    table = np.frombuffer(b"".join(raws), np.uint8).reshape(len(raws), length)
     if ros2:
         try:
             return (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
         except CdrError:
             return None
     # ROS 1: uint32 seq, uint32 sec, uint32 nsec, uint32 length + frame_id, float64s (no alignment).
-    if length < 16:
-        return None
-    name_length = int(table[0, 12:16].copy().view("<u4")[0])
     if 16 + name_length + 8 * n_doubles != length:
         return None
     sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
     nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
-    values = table[:, 16 + name_length:].copy().view("<f8").reshape(len(raws), n_doubles)
+    values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
     return sec * _NS + nanosec, values
 
 
@@ -620,6 +705,8 @@ class PairPlan:
     tolerance_ns: int
     unpaired_left: int
     unpaired_right: int
+    left_index: np.ndarray | None = None  # (K,) position of each pair's messages in their topic (bag order)
+    right_index: np.ndarray | None = None
 
     @property
     def max_offset_ns(self) -> int:
@@ -639,7 +726,7 @@ def plan_pairs(scan: BagScan, tolerance_ns: int | None = None) -> PairPlan:
             "--pair-tolerance-ms",
         )
     return PairPlan(left_ns[li], left_ns[li], right_ns[ri], int(tolerance_ns),
-                    len(left_ns) - len(li), len(right_ns) - len(ri))
+                    len(left_ns) - len(li), len(right_ns) - len(ri), li, ri)
 
 
 def _span(stamps: np.ndarray) -> str:
@@ -774,29 +861,39 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
     with open_bag(src) as reader:
         choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)
         scan = scan_bag(reader, src, choice, progress=options.progress)
-        plan = plan_pairs(scan, pair_tolerance_ns)
-        info_l, info_r, tf, camera_source = camera_model(scan, calib, Path(calibration) if calibration else None)
-        check_force_span(scan, plan, options.force_gap_tolerance_ns)
-        _warn_about(scan, plan)
-        record = layout.RecordingMeta(
-            recording_id=src.stem if src.is_file() else src.name,
-            source=str(src.resolve()),
-            converter=f"vfdata convert ({scan.kind} bag)",
-            converter_version=__version__,
-            extra={
-                "bag_left_topic": choice.left, "bag_right_topic": choice.right,
-                "bag_force_topic": choice.force, "bag_pose_topic": choice.pose or "",
-                "bag_force_frame_id": scan.force.frame_id,
-                "bag_pose_frame_id": scan.pose.frame_id if scan.pose else "",
-                "camera_info_source": camera_source,
-                "pair_tolerance_ns": str(plan.tolerance_ns),
-                "pair_max_offset_ns": str(plan.max_offset_ns),
-                "unpaired_left_frames": str(plan.unpaired_left),
-                "unpaired_right_frames": str(plan.unpaired_right),
-            },
-        )
-        _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
+        try:
+            _convert_scanned(reader, src, out, overwrite, options, scan, choice, calib, calibration, pair_tolerance_ns)
+        finally:
+            close_scan(scan)
     return out
+
+
+def _convert_scanned(reader: AnyReader, src: Path, out: Path, overwrite: bool, options: ConvertOptions, scan: BagScan,
+                     choice: TopicChoice, calib: StereoCalibration | None, calibration: str | Path | None,
+                     pair_tolerance_ns: int | None) -> None:
+    """Everything after the scan: pairing, checks, metadata, the convert pass."""
+    plan = plan_pairs(scan, pair_tolerance_ns)
+    info_l, info_r, tf, camera_source = camera_model(scan, calib, Path(calibration) if calibration else None)
+    check_force_span(scan, plan, options.force_gap_tolerance_ns)
+    _warn_about(scan, plan)
+    record = layout.RecordingMeta(
+        recording_id=src.stem if src.is_file() else src.name,
+        source=str(src.resolve()),
+        converter=f"vfdata convert ({scan.kind} bag)",
+        converter_version=__version__,
+        extra={
+            "bag_left_topic": choice.left, "bag_right_topic": choice.right,
+            "bag_force_topic": choice.force, "bag_pose_topic": choice.pose or "",
+            "bag_force_frame_id": scan.force.frame_id,
+            "bag_pose_frame_id": scan.pose.frame_id if scan.pose else "",
+            "camera_info_source": camera_source,
+            "pair_tolerance_ns": str(plan.tolerance_ns),
+            "pair_max_offset_ns": str(plan.max_offset_ns),
+            "unpaired_left_frames": str(plan.unpaired_left),
+            "unpaired_right_frames": str(plan.unpaired_right),
+        },
+    )
+    _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
 
 
 def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int) -> None:
@@ -833,10 +930,16 @@ def _warn_about(scan: BagScan, plan: PairPlan) -> None:
                     _span(scan.pose.stamps_ns), _span(plan.stamps_ns))
 
 
-def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan) -> Iterator[tuple[int, object, object]]:
-    """(k, left message, right message) for every pair of the plan, in pair order, streaming the bag.
-    A message is found by its acquisition stamp; one waits in memory only until its partner (and the
-    pairs before it) have been read, a frame or two in a normal bag."""
+def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan,
+                     ) -> Iterator[tuple[int, bytes | memoryview, bytes | memoryview]]:
+    """(k, left message, right message), serialised, for every pair of the plan, in pair order."""
+    if scan.indexed is not None:
+        indexed, left, right = scan.indexed, scan.left.topic, scan.right.topic
+        for k, (i, j) in enumerate(zip(plan.left_index.tolist(), plan.right_index.tolist(), strict=True)):
+            yield k, indexed.message(left, i), indexed.message(right, j)
+        return
+    # Streaming the bag: a message is found by its acquisition stamp; one waits in memory only until
+    # its partner (and the pairs before it) have been read, a frame or two in a normal bag.
     wanted = ({int(t): k for k, t in enumerate(plan.left_ns)}, {int(t): k for k, t in enumerate(plan.right_ns)})
     side_of = {scan.left.topic: 0, scan.right.topic: 1}
     connections = [c for c in reader.connections if c.topic in side_of]
@@ -844,19 +947,31 @@ def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan) -> Iterat
     next_k = 0
     for connection, receive_ns, raw in bag_messages(reader, scan.path, connections):
         side = side_of[connection.topic]
-        msg = _deserialize(reader, scan.path, raw, connection)
-        stamp = header_stamp_ns(msg) or receive_ns
+        stamp = header_stamp_ns(_deserialize(reader, scan.path, raw, connection)) or receive_ns
         k = wanted[side].pop(stamp, None)
         if k is None:
             continue  # unpaired, or a repeated stamp whose first message was taken
         slot = pending.setdefault(k, [None, None])
-        slot[side] = msg
+        slot[side] = raw
         while next_k in pending and None not in pending[next_k]:
             left, right = pending.pop(next_k)
             yield next_k, left, right
             next_k += 1
     if next_k != len(plan.stamps_ns):
         raise InputError(scan.path, f"pair {next_k} went missing on the second pass (was the bag modified?)")
+
+
+def restamped(payload: bytes, stamp_ns: int) -> bytes:
+    """A CDR payload of a message that starts with a std_msgs/Header, with header.stamp set to
+    `stamp_ns` (sec and nanosec are bytes 4..12, after the encapsulation header)."""
+    sec, nanosec = divmod(int(stamp_ns), _NS)
+    return payload[:4] + _STAMP.pack(sec, nanosec) + payload[12:]
+
+
+def compressed_image_payload(stamp_ns: int, frame_id: str, fmt: str, data: bytes | np.ndarray) -> bytes:
+    """`CompressedImage(stamp_ns, frame_id, fmt, data).encode()`, with one copy of `data` instead of three."""
+    head = CompressedImage(stamp_ns, frame_id, fmt, b"").encode()[:-4]  # ends with the data length, 0
+    return b"".join((head, _U32.pack(len(data)), memoryview(data).cast("B")))
 
 
 def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrite: bool, options: ConvertOptions,
@@ -867,9 +982,11 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
     )
     extension = ".jpg" if options.image_format == "jpeg" else ".png"
     size = (scan.left.height, scan.left.width)
-    streams = (scan.left, scan.right)
+    connection_of = {c.topic: c for c in reader.connections}
 
-    def encode_one(stream: ImageStream, k: int, msg) -> bytes:
+    def encode_one(stream: ImageStream, k: int, raw: bytes | memoryview, frame: str) -> bytes:
+        """One image as a CompressedImage CDR payload, built here in an encoding thread."""
+        msg = _deserialize(reader, scan.path, raw, connection_of[stream.topic])
         try:
             if stream.msgtype == COMPRESSED_IMAGE:
                 image = compressed_to_bgr(msg.format, msg.data)
@@ -885,20 +1002,16 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
             raise InputError(scan.path, f"{stream.topic}: frame {k} is {image.shape[1]}x{image.shape[0]}, the "
                                         f"first one {size[1]}x{size[0]}")
         if passthrough:
-            return bytes(msg.data)
-        ok, data = cv2.imencode(extension, image, encode_params)
-        if not ok:
-            raise InputError(scan.path, f"{stream.topic}: frame {k}: image cannot be encoded")
-        return data.tobytes()
+            data = msg.data
+        else:
+            ok, data = cv2.imencode(extension, image, encode_params)
+            if not ok:
+                raise InputError(scan.path, f"{stream.topic}: frame {k}: image cannot be encoded")
+        return compressed_image_payload(int(plan.stamps_ns[k]), frame, options.image_format, data)
 
     def encode(item) -> tuple[bytes, bytes]:
-        """Both images of pair k as CompressedImage CDR payloads (built here, off the main thread)."""
         k, left, right = item
-        stamp = int(plan.stamps_ns[k])
-        return tuple(
-            CompressedImage(stamp, frame, options.image_format, encode_one(stream, k, msg)).encode()
-            for stream, msg, frame in ((streams[0], left, layout.LEFT_FRAME), (streams[1], right, layout.RIGHT_FRAME))
-        )
+        return (encode_one(scan.left, k, left, layout.LEFT_FRAME), encode_one(scan.right, k, right, layout.RIGHT_FRAME))
 
     force, pose = scan.force, scan.pose
     force_frame = force.frame_id or layout.SENSOR_FRAME
@@ -908,6 +1021,8 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
     first = int(plan.stamps_ns[0])
     for transform in tf.transforms:
         transform.stamp_ns = first
+    # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
+    info_payloads = ((layout.LEFT_INFO, info_l.encode()), (layout.RIGHT_INFO, info_r.encode()))
     with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer, \
             ThreadPoolExecutor(max(1, options.workers)) as pool:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
@@ -922,9 +1037,8 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
                 if pose is not None:
                     _write_series(writer, layout.ECM_POSE, PoseStamped.msgtype, pose, layout.WORLD_FRAME,
                                   int(pose_until[k - 1]) if k else 0, int(pose_until[k]))
-                info_l.stamp_ns = info_r.stamp_ns = stamp
-                writer.write(layout.LEFT_INFO, info_l)
-                writer.write(layout.RIGHT_INFO, info_r)
+                for topic, payload in info_payloads:
+                    writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
                 writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
                 writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
                 bar.update()
@@ -935,10 +1049,10 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
                           int(pose_until[-1]), len(pose.stamps_ns))
 
 
-def stamped_payloads(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> list[bytes]:
+def stamped_payload_table(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> np.ndarray:
     """CDR payloads of N stamped messages whose body is a header and then float64 values only
-    (WrenchStamped: 6, PoseStamped: 7), encoded at once with numpy: byte for byte what
-    `WrenchStamped.encode()` / `PoseStamped.encode()` give, at a 1 kHz force rate far cheaper."""
+    (WrenchStamped: 6, PoseStamped: 7), as an (N, L) uint8 array built at once with numpy: row i is
+    byte for byte what `WrenchStamped.encode()` / `PoseStamped.encode()` give for message i."""
     stamps_ns = np.asarray(stamps_ns, np.int64)
     values = np.ascontiguousarray(values, "<f8")
     name = frame_id.encode("utf-8") + b"\x00"
@@ -952,17 +1066,21 @@ def stamped_payloads(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -
     table[:, 12:16] = np.frombuffer(np.uint32(len(name)).astype("<u4").tobytes(), np.uint8)
     table[:, 16:head] = np.frombuffer(name, np.uint8)
     table[:, body:] = values.view(np.uint8)
-    return [row.tobytes() for row in table]
+    return table
+
+
+def stamped_payloads(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> list[bytes]:
+    """`stamped_payload_table` as one bytes object per message."""
+    return [row.tobytes() for row in stamped_payload_table(stamps_ns, frame_id, values)]
 
 
 def _write_series(writer: McapWriter, topic: str, msgtype: str, series: Series, frame_id: str, start: int,
                   stop: int) -> None:
-    """Messages start..stop-1 of a force or pose series."""
-    if stop <= start:
-        return
-    stamps = series.stamps_ns[start:stop]
-    for stamp, payload in zip(stamps, stamped_payloads(stamps, frame_id, series.values[start:stop]), strict=True):
-        writer.write_payload(topic, msgtype, int(stamp), payload)
+    """Messages start..stop-1 of a force or pose series, in one call to the writer."""
+    if stop > start:
+        stamps = series.stamps_ns[start:stop]
+        writer.write_payloads(topic, msgtype, stamps, stamped_payload_table(stamps, frame_id,
+                                                                            series.values[start:stop]))
 
 
 def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:

@@ -24,6 +24,7 @@ import zlib
 from pathlib import Path
 from types import TracebackType
 
+import numpy as np
 import zstandard
 
 from vfdata import __version__
@@ -91,6 +92,26 @@ class _Chunk:
         self.index.setdefault(channel_id, []).append((log_time, offset))
         self.start = log_time if self.start is None else min(self.start, log_time)
         self.end = log_time if self.end is None else max(self.end, log_time)
+
+    def add_many(self, channel_id: int, first_sequence: int, log_times: np.ndarray, payloads: np.ndarray) -> None:
+        """`add` for n messages of one channel at once: payloads an (n, L) uint8 array, one row each.
+        The records are built as one numpy table, byte for byte what n `add` calls append."""
+        count, length = payloads.shape
+        record = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
+                           ("log_time", "<u8"), ("publish_time", "<u8"), ("payload", "u1", (length,))])
+        table = np.empty(count, record)
+        table["opcode"] = OP_MESSAGE
+        table["length"] = 22 + length
+        table["channel"] = channel_id
+        table["sequence"] = np.arange(first_sequence, first_sequence + count)
+        table["log_time"] = table["publish_time"] = log_times
+        table["payload"] = payloads
+        offsets = len(self.records) + record.itemsize * np.arange(count)
+        self.records += table.tobytes()
+        self.index.setdefault(channel_id, []).extend(zip(log_times.tolist(), offsets.tolist(), strict=True))
+        low, high = int(log_times.min()), int(log_times.max())
+        self.start = low if self.start is None else min(self.start, low)
+        self.end = high if self.end is None else max(self.end, high)
 
 
 class McapWriter:
@@ -174,6 +195,36 @@ class McapWriter:
         self._main.add(channel_id, sequence, log_time, payload)
         if len(self._main.records) >= self._chunk_size:
             self._flush(self._main)
+
+    def write_payloads(self, topic: str, msgtype: str, log_times_ns: np.ndarray, payloads: np.ndarray) -> None:
+        """Many messages of one topic at once: `payloads` an (n, L) uint8 array (one message a row, all of
+        length L, e.g. a force series), `log_times_ns` (n,). The file is byte for byte what n
+        `write_payload` calls give (same chunk boundaries), at a fraction of their per-message cost."""
+        log_times_ns = np.asarray(log_times_ns, np.int64)
+        payloads = np.ascontiguousarray(payloads, np.uint8)
+        if len(log_times_ns) != len(payloads) or payloads.ndim != 2:
+            raise ValueError("write_payloads needs one log time per payload row")
+        channel_id = self.channel(topic, msgtype)
+        separate = topic in self._separate
+        chunk = self._series if separate else self._main
+        record_size = 31 + payloads.shape[1]
+        start = 0
+        while start < len(payloads):
+            # As many messages as `write_payload` would add before its next flush of this chunk.
+            if separate:
+                room = self._separate_batch - sum(len(v) for v in chunk.index.values())
+            else:
+                room = -(-(self._chunk_size - len(chunk.records)) // record_size)
+            stop = min(len(payloads), start + max(1, room))
+            sequence = self._sequence[topic]
+            chunk.add_many(channel_id, sequence, log_times_ns[start:stop], payloads[start:stop])
+            self._sequence[topic] = sequence + stop - start
+            self._message_counts[channel_id] += stop - start
+            full = (sum(len(v) for v in chunk.index.values()) >= self._separate_batch if separate
+                    else len(chunk.records) >= self._chunk_size)
+            if full:
+                self._flush(chunk)
+            start = stop
 
     def _flush(self, chunk: _Chunk) -> None:
         if not chunk.index:

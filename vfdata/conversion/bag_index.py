@@ -1,0 +1,400 @@
+"""Random access to the raw messages of a bag, for the storages where it is cheap: ROS 1 bags with
+uncompressed chunks (the file is memory-mapped; a message is a slice of it, copied by nobody) and
+ROS 2 sqlite3 bags (a message is a row, read as a blob, its first bytes alone when that is enough).
+
+`rosbags` still opens the bag, checks it and deserialises the messages; this module only replaces
+its message iterator where the conversion needs more than an iterator gives:
+- the stamp, encoding and size of every image without reading the pixels (the scan);
+- the two images of a stereo pair fetched directly, in pair order, once (the convert pass);
+- a 1 kHz force series as a few blocks of equal-length payloads, decoded with numpy, instead of one
+  Python object per message.
+
+`open_indexed_bag` returns None for every other storage (ROS 1 bags with bz2/lz4 chunks, ROS 2 MCAP
+storage, compressed ROS 2 bags) and for anything that does not look exactly as expected; the
+converter then reads the bag through `rosbags`' iterator, which also gives the clear errors for a
+damaged bag."""
+
+from __future__ import annotations
+
+import mmap
+import sqlite3
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+from rosbags.highlevel import AnyReader
+
+_NS = 1_000_000_000
+_U32 = struct.Struct("<I")
+_I32 = struct.Struct("<i")
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+HEAD_BYTES = 256  # enough for the fields before the pixels unless frame_id or encoding are very long
+BLOCK = 4096  # messages per block of a series, and per bulk check of ROS 1 record headers
+
+
+# -- the fields of an image message before its pixels -----------------------------------------------
+@dataclass(frozen=True)
+class ImageHead:
+    """What the scan needs of an image message: stamp (header.stamp, ns), the Image encoding or the
+    CompressedImage format, and the size (0 x 0 for compressed images: known only once decoded)."""
+
+    stamp_ns: int
+    encoding: str
+    width: int = 0
+    height: int = 0
+
+
+class _Cursor:
+    """Reads the leading fields of a ROS 1 (plain little-endian) or CDR (aligned, strings counting their
+    NUL) message from its first bytes; IndexError when they run out."""
+
+    def __init__(self, buf: bytes | memoryview, cdr: bool):
+        self.buf, self.cdr, self.pos = buf, cdr, 4 if cdr else 0
+
+    def u32(self) -> int:
+        if self.cdr:
+            self.pos += (-(self.pos - 4)) % 4
+        if self.pos + 4 > len(self.buf):
+            raise IndexError("message too short")
+        value = _U32.unpack_from(self.buf, self.pos)[0]
+        self.pos += 4
+        return value
+
+    def i32(self) -> int:
+        value = self.u32()
+        return _I32.unpack(_U32.pack(value))[0]
+
+    def u8(self) -> int:
+        if self.pos >= len(self.buf):
+            raise IndexError("message too short")
+        self.pos += 1
+        return self.buf[self.pos - 1]
+
+    def string(self) -> str:
+        length = self.u32()
+        if self.pos + length > len(self.buf):
+            raise IndexError("message too short")
+        data = bytes(self.buf[self.pos:self.pos + length])
+        self.pos += length
+        return (data[:-1] if self.cdr and data.endswith(b"\0") else data).decode("utf-8")
+
+
+def image_head(buf: bytes | memoryview, msgtype: str, ros2: bool) -> ImageHead | None:
+    """The leading fields of a serialised sensor_msgs Image or CompressedImage (ROS 1, or little-endian
+    CDR for ROS 2) from its first bytes. None when they are not all in `buf`, the CDR payload is
+    big-endian, or a string is not UTF-8: the caller then deserialises the whole message."""
+    if ros2 and (len(buf) < 4 or buf[1] != 1):
+        return None
+    r = _Cursor(buf, cdr=ros2)
+    try:
+        if ros2:
+            sec = r.i32()
+        else:
+            r.u32()  # seq
+            sec = r.u32()
+        stamp = sec * _NS + r.u32()
+        r.string()  # frame_id
+        if msgtype == COMPRESSED_IMAGE:
+            return ImageHead(stamp, r.string())
+        height, width = r.u32(), r.u32()
+        return ImageHead(stamp, r.string(), width, height)
+    except (IndexError, UnicodeDecodeError):
+        return None
+
+
+# -- the indexed bags -------------------------------------------------------------------------------
+class IndexedBag:
+    """The messages of the topics asked for, in bag order (by receive time, as `rosbags` yields them),
+    each reachable by its position in its topic."""
+
+    def receive_ns(self, topic: str) -> np.ndarray:
+        """Bag receive times (ns) of the messages of `topic`, in bag order."""
+        raise NotImplementedError
+
+    def message(self, topic: str, i: int) -> bytes | memoryview:
+        """The serialised message i of `topic`."""
+        raise NotImplementedError
+
+    def head(self, topic: str, i: int) -> bytes | memoryview:
+        """The first bytes (at most HEAD_BYTES) of message i of `topic`."""
+        raise NotImplementedError
+
+    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        """Every message of `topic` in blocks of at most BLOCK: (receive times (n,) ns, payloads), the
+        payloads as an (n, L) uint8 array when they all have length L, else a list of bytes."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+def open_indexed_bag(reader: AnyReader, path: Path, topics: set[str]) -> IndexedBag | None:
+    """Random access to `topics` of an open bag, or None where the storage does not allow it cheaply
+    (see the module docstring)."""
+    try:
+        if not reader.is2:
+            return _Ros1Bag.open(reader, topics)
+        return _SqliteBag.open(path, reader, topics)
+    except (OSError, ValueError, IndexError, KeyError, struct.error, sqlite3.Error, yaml.YAMLError):
+        return None
+
+
+def _as_table(payloads: list[bytes]) -> np.ndarray | list[bytes]:
+    length = len(payloads[0])
+    if any(len(p) != length for p in payloads):
+        return payloads
+    return np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
+
+
+# ROS 1 bag format 2.0 (wiki.ros.org/Bags/Format/2.0): a record is a uint32 header length, the header
+# (fields `uint32 length, name=value`), a uint32 data length and the data. A chunk record (op 5)
+# holds message records (op 2), whose positions the bag's index gives as chunk + offset.
+_OP_MSG_DATA, _OP_CHUNK = 2, 5
+
+
+def _record_fields(buf: mmap.mmap, pos: int) -> tuple[dict[bytes, tuple[int, int]], int, int]:
+    """The record at `pos` -> ({field name: (value position, value length)}, data position, data length)."""
+    header_len = _U32.unpack_from(buf, pos)[0]
+    cursor, end = pos + 4, pos + 4 + header_len
+    fields = {}
+    while cursor < end:
+        field_len = _U32.unpack_from(buf, cursor)[0]
+        field = buf[cursor + 4:cursor + 4 + field_len]
+        name, sep, _ = field.partition(b"=")
+        if not sep or cursor + 4 + field_len > end:
+            raise ValueError("malformed record header")
+        fields[name] = (cursor + 4 + len(name) + 1, field_len - len(name) - 1)
+        cursor += 4 + field_len
+    return fields, end + 4, _U32.unpack_from(buf, end)[0]
+
+
+def _gather(data: np.ndarray, starts: np.ndarray, width: int) -> np.ndarray:
+    """(n, width) uint8: `width` bytes of `data` from each start."""
+    return data[starts[:, None] + np.arange(width)]
+
+
+def _u32_at(data: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    return _gather(data, starts, 4).view("<u4").ravel().astype(np.int64)
+
+
+class _Ros1Bag(IndexedBag):
+    """A ROS 1 bag whose chunks are all uncompressed, memory-mapped. The index `rosbags` read on opening
+    (per connection: receive time, chunk, offset) locates every message; the record headers of the
+    topics asked for are checked in bulk against it (op, connection, time) before anything is used."""
+
+    def __init__(self, buffer: mmap.mmap, refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
+        self._mmap = buffer
+        self._data = np.frombuffer(buffer, np.uint8)
+        self._refs = refs  # topic -> (receive ns, data position, data length), in bag order
+
+    @classmethod
+    def open(cls, reader: AnyReader, topics: set[str]) -> _Ros1Bag | None:
+        (bag,) = reader.readers
+        with open(bag.path, "rb") as file:
+            buffer = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)  # stays open after the file
+        try:
+            refs = _ros1_index(buffer, bag, reader.connections, topics)
+        except BaseException:
+            _close_quietly(buffer)
+            raise
+        if refs is None:
+            _close_quietly(buffer)
+            return None
+        return cls(buffer, refs)
+
+    def receive_ns(self, topic: str) -> np.ndarray:
+        return self._refs[topic][0]
+
+    def message(self, topic: str, i: int) -> memoryview:
+        _, pos, length = self._refs[topic]
+        return memoryview(self._mmap)[pos[i]:pos[i] + length[i]]
+
+    def head(self, topic: str, i: int) -> memoryview:
+        _, pos, length = self._refs[topic]
+        return memoryview(self._mmap)[pos[i]:pos[i] + min(int(length[i]), HEAD_BYTES)]
+
+    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        receive, pos, length = self._refs[topic]
+        for start in range(0, len(receive), BLOCK):
+            block = slice(start, start + BLOCK)
+            lengths = length[block]
+            if (lengths == lengths[0]).all():
+                yield receive[block], _gather(self._data, pos[block], int(lengths[0]))
+            else:
+                yield receive[block], [self._mmap[p:p + n] for p, n in zip(pos[block], lengths, strict=True)]
+
+    def close(self) -> None:
+        del self._data
+        _close_quietly(self._mmap)
+
+
+def _close_quietly(buffer: mmap.mmap) -> None:
+    try:
+        buffer.close()
+    except BufferError:
+        pass  # a message still refers to the mapping; it is unmapped when the last one is gone
+
+
+def _field(buffer: mmap.mmap, fields: dict[bytes, tuple[int, int]], name: bytes) -> bytes | None:
+    if name not in fields:
+        return None
+    pos, length = fields[name]
+    return buffer[pos:pos + length]
+
+
+def _ros1_index(buffer: mmap.mmap, bag, connections: list, topics: set[str],
+                ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] | None:
+    """Per topic (receive ns, data position, data length) of its messages; None unless every chunk is
+    uncompressed and inside the file."""
+    chunk_pos, chunk_data, chunk_end = [], [], []
+    for pos in sorted(bag.chunks):
+        fields, data_pos, data_len = _record_fields(buffer, pos)
+        if _field(buffer, fields, b"op") != bytes([_OP_CHUNK]) or _field(buffer, fields, b"compression") != b"none":
+            return None
+        chunk_pos.append(pos)
+        chunk_data.append(data_pos)
+        chunk_end.append(data_pos + data_len)
+    if chunk_end and max(chunk_end) > len(buffer):
+        return None
+    chunks = (np.array(chunk_pos, np.int64), np.array(chunk_data, np.int64), np.array(chunk_end, np.int64))
+    data = np.frombuffer(buffer, np.uint8)
+    refs = {}
+    for topic in topics:
+        found = _ros1_refs(buffer, data, chunks, [c for c in connections if c.topic == topic], bag.indexes)
+        if found is None:
+            return None
+        refs[topic] = found
+    return refs
+
+
+def _ros1_refs(buffer: mmap.mmap, data: np.ndarray, chunks: tuple[np.ndarray, np.ndarray, np.ndarray],
+               connections: list, indexes: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(receive ns, data position, data length) of every message of these connections, in bag order;
+    None unless every record is a message record of its connection at its index time."""
+    entries = [(e.time, e.chunk_pos, e.offset, c.id) for c in connections for e in indexes[c.id]]
+    if not entries:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty
+    table = np.array(entries, np.int64)
+    table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]  # rosbags' merge order
+    receive, chunk_at, offset, conn = table.T
+    chunk_pos, chunk_data, chunk_end = chunks
+    which = np.searchsorted(chunk_pos, chunk_at)
+    if (which >= len(chunk_pos)).any() or (chunk_pos[np.minimum(which, len(chunk_pos) - 1)] != chunk_at).any():
+        return None
+    record = chunk_data[which] + offset
+    positions, lengths = np.empty_like(record), np.empty_like(record)
+    # The header layout of the first record; every other one must have the same field names in the
+    # same order, with only the connection and time values differing.
+    fields, _, _ = _record_fields(buffer, int(record[0]))
+    layout = {name: fields.get(name) for name in (b"op", b"conn", b"time")}
+    if None in layout.values() or [v[1] for v in layout.values()] != [1, 4, 8]:
+        return None
+    header_len = _U32.unpack_from(buffer, int(record[0]))[0]
+    values = np.zeros(header_len, bool)
+    first = int(record[0]) + 4
+    for name in (b"conn", b"time"):
+        at, size = layout[name]
+        values[at - first:at - first + size] = True
+    for start in range(0, len(record), BLOCK):
+        block = slice(start, start + BLOCK)
+        rec = record[block]
+        if (rec + 8 + header_len > chunk_end[which[block]]).any() or (_u32_at(data, rec) != header_len).any():
+            return None
+        headers = _gather(data, rec + 4, header_len)
+        template = data[first:first + header_len]
+        op_at, conn_at, time_at = (layout[n][0] - first for n in (b"op", b"conn", b"time"))
+        sec = headers[:, time_at:time_at + 4].copy().view("<u4").ravel().astype(np.int64)
+        nsec = headers[:, time_at + 4:time_at + 8].copy().view("<u4").ravel().astype(np.int64)
+        if not ((headers[:, ~values] == template[~values]).all() and (headers[:, op_at] == _OP_MSG_DATA).all()
+                and (headers[:, conn_at:conn_at + 4].copy().view("<u4").ravel() == conn[block]).all()
+                and (sec * _NS + nsec == receive[block]).all()):
+            return None
+        positions[block] = rec + 8 + header_len
+        lengths[block] = _u32_at(data, rec + 4 + header_len)
+        if (positions[block] + lengths[block] > chunk_end[which[block]]).any():
+            return None
+    return receive, positions, lengths
+
+
+class _SqliteBag(IndexedBag):
+    """A ROS 2 bag in sqlite3 storage (one or more .db3 files, not compressed), read through our own
+    read-only connections: messages are rows of `messages(id, topic_id, timestamp, data)`."""
+
+    def __init__(self, connections: list[sqlite3.Connection],
+                 refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
+        self._db = connections
+        self._refs = refs  # topic -> (receive ns, file index, row id), in bag order
+
+    @classmethod
+    def open(cls, path: Path, reader: AnyReader, topics: set[str]) -> _SqliteBag | None:
+        files = _sqlite_files(path)
+        if files is None:
+            return None
+        connections = []
+        try:
+            for file in files:
+                db = sqlite3.connect(file.resolve().as_uri() + "?mode=ro&immutable=1", uri=True,
+                                     check_same_thread=False)
+                # Pages through a memory map: an image spans hundreds of pages, one read() each otherwise.
+                db.execute("PRAGMA mmap_size = 1099511627776")
+                connections.append(db)
+            refs = {}
+            for topic in topics:
+                parts = []
+                for index, db in enumerate(connections):
+                    rows = db.execute("SELECT messages.timestamp, messages.id FROM messages JOIN topics ON "
+                                      "messages.topic_id = topics.id WHERE topics.name = ? "
+                                      "ORDER BY messages.timestamp, messages.id", (topic,)).fetchall()
+                    table = np.array(rows, np.int64).reshape(-1, 2)
+                    parts.append(np.column_stack([table[:, 0], np.full(len(table), index), table[:, 1]]))
+                table = np.concatenate(parts)
+                table = table[np.argsort(table[:, 0], kind="stable")]
+                refs[topic] = (table[:, 0], table[:, 1], table[:, 2])
+        except BaseException:
+            for db in connections:
+                db.close()
+            raise
+        return cls(connections, refs)
+
+    def receive_ns(self, topic: str) -> np.ndarray:
+        return self._refs[topic][0]
+
+    def _blob(self, topic: str, i: int):
+        _, file, row = self._refs[topic]
+        return self._db[int(file[i])].blobopen("messages", "data", int(row[i]), readonly=True)
+
+    def message(self, topic: str, i: int) -> bytes:
+        with self._blob(topic, i) as blob:
+            return blob.read()
+
+    def head(self, topic: str, i: int) -> bytes:
+        with self._blob(topic, i) as blob:
+            return blob.read(HEAD_BYTES)
+
+    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        # File by file: the files of a split bag follow one another in time.
+        for db in self._db:
+            cursor = db.execute("SELECT messages.timestamp, messages.data FROM messages JOIN topics ON "
+                                "messages.topic_id = topics.id WHERE topics.name = ? "
+                                "ORDER BY messages.timestamp, messages.id", (topic,))
+            while rows := cursor.fetchmany(BLOCK):
+                yield np.array([r[0] for r in rows], np.int64), _as_table([r[1] for r in rows])
+
+    def close(self) -> None:
+        for db in self._db:
+            db.close()
+
+
+def _sqlite_files(path: Path) -> list[Path] | None:
+    """The .db3 files of an uncompressed sqlite3 ROS 2 bag (a folder, or one .db3 given alone)."""
+    if path.is_file():
+        return [path] if path.suffix == ".db3" else None
+    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    if info.get("storage_identifier") != "sqlite3" or (info.get("compression_mode") or "none").lower() != "none":
+        return None
+    return [path / Path(name).name for name in info["relative_file_paths"]]
