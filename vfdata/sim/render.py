@@ -463,41 +463,80 @@ def _normalize(a: np.ndarray) -> np.ndarray:
 
 
 def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
-          shininess: np.ndarray | float, light: Light, specular_tint: np.ndarray | None = None,
+          shininess: np.ndarray | float, light: Light, scale: np.ndarray | float = 1.0,
           wrap: float = 0.35, ambient: float = 0.04, glint: float = 0.0) -> np.ndarray:
     """Linear RGB radiance (3, P) of surface points (3, P) with unit normals (3, P) and albedo (3, P)
-    lit by a point light near the camera. `glint` adds a sharp second lobe where the surface is
-    wettest (the small saturated sparkles of a moist tissue film)."""
-    lp = light.position.astype(np.float32)[:, None]
-    to_light = lp - position
+    lit by a point light near the camera, times `scale` (e.g. the lens vignetting). Wrapped Lambert
+    diffuse plus Blinn-Phong specular; `glint` adds a sharp second lobe (8 times the exponent) where
+    the surface is wettest (the small saturated sparkles of a moist tissue film).
+
+    Written for speed on ~10^5 pixels: float32 throughout, and the half vector's cosine from dot
+    products (n.h = (n.l + n.v) / |l + v|, |l + v|^2 = 2 + 2 l.v) instead of building it. The lobes
+    are floored at e^-60 (invisible): tinier values would be denormal floats, which the CPU handles
+    some hundred times slower."""
+    f32 = np.float32
+    to_light = light.position.astype(f32)[:, None] - position
     dist2 = _dot(to_light, to_light)
-    l = to_light * (np.float32(1.0) / np.sqrt(dist2))
-    view = position * (np.float32(-1.0) / np.sqrt(_dot(position, position)))
-    ndl = _dot(normal, l)
-    diffuse = np.clip((ndl + np.float32(wrap)) / np.float32(1 + wrap), 0, None)
-    h = _normalize(l + view)
-    ndh = np.clip(_dot(normal, h), np.float32(1e-6), np.float32(1.0))
-    log_ndh = np.log(ndh)
-    spec = gloss * np.exp(shininess * log_ndh) * (ndl > 0)
+    inv_dist = f32(1.0) / np.sqrt(dist2)
+    inv_view = f32(-1.0) / np.sqrt(_dot(position, position))
+    ndl = _dot(normal, to_light)
+    ndl *= inv_dist
+    ndv = _dot(normal, position)
+    ndv *= inv_view
+    ldv = _dot(to_light, position)
+    ldv *= inv_dist
+    ldv *= inv_view
+    # Cosine to the half vector.
+    ldv += f32(1.0)
+    np.maximum(ldv, f32(1e-6), out=ldv)
+    ndh = ndl + ndv
+    ndh *= f32(np.sqrt(0.5)) / np.sqrt(ldv)
+    np.clip(ndh, f32(1e-6), f32(1.0), out=ndh)
+    log_lobe = np.log(ndh)
+    log_lobe *= shininess
+    np.maximum(log_lobe, f32(-60.0), out=log_lobe)
+    spec = np.exp(log_lobe)
+    spec *= gloss
     if glint:
-        spec = spec + np.float32(glint) * gloss * gloss * np.exp(np.float32(8.0) * shininess * log_ndh)
-    falloff = np.float32(light.intensity) / dist2
+        log_lobe *= f32(8.0)
+        np.maximum(log_lobe, f32(-60.0), out=log_lobe)
+        sharp = np.exp(log_lobe)
+        sharp *= gloss * gloss * f32(glint)
+        spec += sharp
+    spec *= ndl > 0
+    falloff = inv_dist * inv_dist
+    falloff *= f32(light.intensity) * scale
     spec *= falloff
-    if specular_tint is not None:
-        spec = spec * np.asarray(specular_tint, np.float32)[:, None]
-    diffuse *= falloff
-    diffuse += np.float32(ambient)
-    return albedo * diffuse + spec
+    diffuse = ndl + f32(wrap)
+    np.maximum(diffuse, f32(0.0), out=diffuse)
+    diffuse *= falloff * f32(1.0 / (1.0 + wrap))
+    diffuse += f32(ambient) * scale
+    out = albedo * diffuse
+    out += spec
+    return out
 
 
 def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
                    strength: float) -> np.ndarray:
-    """Perturb unit normals (3, P) by a bump map's gradients (u around the tube, v along it)."""
-    ts = _normalize(tangent_s - _dot(tangent_s, normal) * normal)
-    tu = np.stack([normal[1] * ts[2] - normal[2] * ts[1], normal[2] * ts[0] - normal[0] * ts[2],
-                   normal[0] * ts[1] - normal[1] * ts[0]])
-    k = np.float32(strength)
-    return _normalize(normal - k * (grad_u * tu + grad_v * ts))
+    """Unit normals (3, P) perturbed by a bump map's gradients (u around the tube, v along it).
+    `normal`: (3, P), near unit length (interpolated unit normals: the result is normalised anyway);
+    `tangent_s`: (3, P) unit directions along v, orthogonalised here against the normal."""
+    f32 = np.float32
+    ts = tangent_s - _dot(tangent_s, normal) * normal
+    ts *= f32(1.0) / np.sqrt(np.maximum(_dot(ts, ts), f32(1e-24)))
+    tu = np.empty_like(ts)
+    np.multiply(normal[1], ts[2], out=tu[0])
+    tu[0] -= normal[2] * ts[1]
+    np.multiply(normal[2], ts[0], out=tu[1])
+    tu[1] -= normal[0] * ts[2]
+    np.multiply(normal[0], ts[1], out=tu[2])
+    tu[2] -= normal[1] * ts[0]
+    tu *= grad_u * f32(-strength)
+    ts *= grad_v * f32(-strength)
+    tu += ts
+    tu += normal
+    tu *= f32(1.0) / np.sqrt(np.maximum(_dot(tu, tu), f32(1e-24)))
+    return tu
 
 
 def vignette(camera: PinholeCamera, strength: float = 1.0) -> np.ndarray:

@@ -203,10 +203,9 @@ class SceneRenderer:
         bed_frag = bed_frag.subset(depth[bed_frag.flat] == bed_frag.depth).interpolate()
         albedo, gloss, bump = self.bed_texture.sample(bed_frag.attrs[0], bed_frag.attrs[1])
         tangent = np.tile(self.r_co[:, 2:3].astype(np.float32), (1, len(bed_frag.flat)))
-        normal = bumped_normals(bed_frag.normal, tangent, bump[0], bump[1], 3.0 * spec.bump_strength)
-        rad = shade(bed_frag.position(cam), normal, albedo, gloss, spec.bed_palette.shininess, light,
-                    glint=3.0)
-        color[:, bed_frag.flat] = tone_map(rad * vig[bed_frag.flat])
+        normal = bumped_normals(bed_frag.values[:3], tangent, bump[0], bump[1], 3.0 * spec.bump_strength)
+        color[:, bed_frag.flat] = tone_map(shade(bed_frag.position(cam), normal, albedo, gloss,
+                                                 spec.bed_palette.shininess, light, vig[bed_frag.flat], glint=3.0))
         color[:, fix_frag.flat] = self._shade_materials(fix_frag, fixture, cam, light, vig[fix_frag.flat])
         return _StaticView(color, depth, vig)
 
@@ -216,7 +215,7 @@ class SceneRenderer:
         """(3, P) display values of instrument / fixture fragments by their quads' material ids."""
         mat = np.rint(frag.face(mesh.face_attrs)[0]).astype(np.intp)
         return tone_map(shade(frag.position(cam), frag.normal, _ALBEDO.take(mat, axis=1), _GLOSS.take(mat),
-                              _SHININESS.take(mat), light, wrap=0.0, ambient=0.03) * vignetting)
+                              _SHININESS.take(mat), light, vignetting, wrap=0.0, ambient=0.03))
 
     # --- dynamic objects -----------------------------------------------------------------------------
 
@@ -239,6 +238,7 @@ class SceneRenderer:
         along = np.concatenate([ps.reshape(-1, 3), ps[-1]])
         q = self.tube_quads_t
         tangent = along[q[0]] + along[q[1]] + along[q[2]] + along[q[3]]
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
         return Mesh(verts, self.tube_quads, normals, self.tube_uv, tangent.astype(np.float32))
 
     def _shaft(self, p0: np.ndarray, p1: np.ndarray, radius: float = 4.2, n_around: int = 20,
@@ -318,10 +318,11 @@ class SceneRenderer:
             color = static.color.copy()
             planes = list(color)
             albedo, gloss, bump = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
-            normal = bumped_normals(t_frag.normal, t_frag.face(tube.face_attrs), bump[0], bump[1],
+            normal = bumped_normals(t_frag.values[:3], t_frag.face(tube.face_attrs), bump[0], bump[1],
                                     spec.bump_strength)
-            rad = shade(t_frag.position(cam), normal, albedo, gloss, spec.tube_palette.shininess, light, glint=3.0)
-            for plane, values in zip(planes, tone_map(rad * static.vignette.take(t_frag.flat)), strict=True):
+            rad = shade(t_frag.position(cam), normal, albedo, gloss, spec.tube_palette.shininess, light,
+                        static.vignette.take(t_frag.flat), glint=3.0)
+            for plane, values in zip(planes, tone_map(rad), strict=True):
                 plane[t_frag.flat] = values
             tool_color = self._shade_materials(i_frag, tool, cam, light, static.vignette.take(i_frag.flat))
             for plane, values in zip(planes, tool_color, strict=True):
