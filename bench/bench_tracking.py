@@ -76,6 +76,7 @@ def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) 
         "seen_normal_p95_mm",
         "coverage",
         "nni",
+        "nni_image",
         "lost_at_end",
         "cpu_fps",
     ]
@@ -94,6 +95,7 @@ def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) 
         "seen n95",
         "coverage",
         "NNI",
+        "NNI image",
         "lost",
         "cpu fps",
     ]

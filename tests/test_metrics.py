@@ -47,9 +47,17 @@ def test_nni_is_one_for_a_rigid_motion_and_drops_when_points_bunch():
     rotation = np.linalg.qr(rng.standard_normal((3, 3)))[0]
     assert metrics.nearest_neighbour_index(first @ rotation.T + 7.0, first) == pytest.approx(1.0)
     assert metrics.nearest_neighbour_index(first * 0.5, first) == pytest.approx(0.5)
+    # The same points at both frames: hiding some (or losing them, NaN) does not by itself spread the rest.
     half = np.arange(256) < 128
-    nni = metrics.nearest_neighbour_index(first, first, visible=half)
-    assert nni > 1.0  # fewer visible points are farther apart
+    assert metrics.nearest_neighbour_index(first, first, visible=half) == pytest.approx(1.0)
+    assert metrics.nearest_neighbour_index(first, first, first_visible=half) == pytest.approx(1.0)
+    lost = first.copy()
+    lost[128:] = np.nan
+    assert metrics.nearest_neighbour_index(lost, first) == pytest.approx(1.0)
+    # ... while bunching the visible ones does lower it.
+    bunched = first.copy()
+    bunched[:128] *= 0.5
+    assert metrics.nearest_neighbour_index(bunched, first, visible=half) == pytest.approx(0.5)
 
 
 def test_tracking_error_splits_normal_and_tangential_parts():

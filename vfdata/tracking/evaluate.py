@@ -54,10 +54,13 @@ class SimRecording:
         return len(self.material_points)
 
     def image(self, frame: int) -> np.ndarray:
-        """(H, W, 3) uint8 BGR left image (OpenCV order, as `Recording.frame` gives)."""
-        bgr = cv2.imread(str(self.folder / "left" / f"{frame:06d}.png"), cv2.IMREAD_COLOR)
+        """(H, W, 3) uint8 BGR left image (OpenCV order, as `Recording.frame` gives); PNG or JPEG."""
+        path = self.folder / "left" / f"{frame:06d}.png"
+        if not path.is_file():
+            path = path.with_suffix(".jpg")
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise InputError(self.folder / "left" / f"{frame:06d}.png", "missing or unreadable image")
+            raise InputError(path, "missing or unreadable image")
         return bgr
 
     def mask(self, frame: int) -> np.ndarray:
@@ -161,7 +164,8 @@ def score(run: TrackingRun, rec: SimRecording) -> dict:
     """Error against ground truth over every frame and point the tracker reports (and, as `seen_*`,
     over those whose true position is in view: in the mask and not behind another surface), and coverage / NNI
     at the force peaks (when the clip has none: every 30th frame back from the last). Frame 0 of the run holds the
-    reference selection, the same for every tracker."""
+    reference selection, the same for every tracker. NNI is in 3D (mm) over the points visible at both frames;
+    `nni_image` is the same ratio for their projections in the left image (pixels)."""
     count = len(run.points)
     truth, normals = ground_truth_tracks(run.points[0], rec.material_points[:count], rec.material_normals[:count])
     error = metrics.tracking_error(run.points, truth, normals)
@@ -169,16 +173,20 @@ def score(run: TrackingRun, rec: SimRecording) -> dict:
     error_seen = metrics.tracking_error(run.points, truth, normals, valid=seen)
     peaks = metrics.force_peaks(rec.force_n[:count])
     judged = peaks if len(peaks) else np.arange(count - 1, 0, -30)[::-1]
-    cover, nni = [], []
+    cover, nni, nni_image = [], [], []
+    first_uv = rec.camera.project(run.points[0])
     for f in judged:
-        cover.append(metrics.coverage(rec.camera.project(run.points[f]), rec.mask(f), run.visible[f]))
+        uv = rec.camera.project(run.points[f])
+        cover.append(metrics.coverage(uv, rec.mask(f), run.visible[f]))
         nni.append(metrics.nearest_neighbour_index(run.points[f], run.points[0], run.visible[f], run.visible[0]))
+        nni_image.append(metrics.nearest_neighbour_index(uv, first_uv, run.visible[f], run.visible[0]))
     lost = float(np.mean(~np.isfinite(run.points[-1]).all(axis=1)))
     return {
         **error.as_dict(),
         **{f"seen_{k}": v for k, v in error_seen.as_dict().items()},
         "coverage": float(np.mean(cover)) if cover else float("nan"),
         "nni": float(np.nanmean(nni)) if nni else float("nan"),
+        "nni_image": float(np.nanmean(nni_image)) if nni_image else float("nan"),
         "peaks": len(peaks),
         "lost_at_end": lost,
         "fps": run.frames_per_second,
