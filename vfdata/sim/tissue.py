@@ -116,18 +116,19 @@ class SurfaceMap:
 
     def evaluate(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Node positions (R, C, 3) -> positions, d/ds tangents, d/dtheta tangents, each (S, T, 3)."""
-        a = np.einsum("sr,rcx->scx", self.ws, nodes)
-        da = np.einsum("sr,rcx->scx", self.dws, nodes)
-        p = np.einsum("tc,scx->stx", self.wt, a)
-        ps = np.einsum("tc,scx->stx", self.wt, da)
-        pt = np.einsum("tc,scx->stx", self.dwt, a)
-        return p, ps, pt
+        R, C, _ = nodes.shape
+        flat = nodes.reshape(R, C * 3)
+        a = (self.ws @ flat).reshape(-1, C, 3)     # along the tube first: (S, C, 3)
+        da = (self.dws @ flat).reshape(-1, C, 3)
+        return self.wt @ a, self.wt @ da, self.dwt @ a  # then around: (T, C) @ (S, C, 3) -> (S, T, 3)
 
     def evaluate_scattered(self, nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For a map built from paired (s, theta) samples (S == T): positions and outward unit normals
         (S, 3) of those samples."""
-        a = np.einsum("nr,rcx->ncx", self.ws, nodes)
-        da = np.einsum("nr,rcx->ncx", self.dws, nodes)
+        R, C, _ = nodes.shape
+        flat = nodes.reshape(R, C * 3)
+        a = (self.ws @ flat).reshape(-1, C, 3)  # a matrix product: much faster than the einsum
+        da = (self.dws @ flat).reshape(-1, C, 3)
         p = np.einsum("nc,ncx->nx", self.wt, a)
         ps = np.einsum("nc,ncx->nx", self.wt, da)
         pt = np.einsum("nc,ncx->nx", self.dwt, a)
