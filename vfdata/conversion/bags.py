@@ -1013,11 +1013,6 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         k, left, right = item
         return (encode_one(scan.left, k, left, layout.LEFT_FRAME), encode_one(scan.right, k, right, layout.RIGHT_FRAME))
 
-    force, pose = scan.force, scan.pose
-    force_frame = force.frame_id or layout.SENSOR_FRAME
-    # Samples up to each frame's stamp are written before it, so the file is in time order.
-    force_until = np.searchsorted(force.stamps_ns, plan.stamps_ns, side="right")
-    pose_until = np.searchsorted(pose.stamps_ns, plan.stamps_ns, side="right") if pose else None
     first = int(plan.stamps_ns[0])
     for transform in tf.transforms:
         transform.stamp_ns = first
@@ -1027,26 +1022,26 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
             ThreadPoolExecutor(max(1, options.workers)) as pool:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
         writer.write(layout.TF_STATIC, tf)
+        # Samples up to each frame's stamp are written before it, so the file is in time order.
+        series_writers = [_SeriesWriter(writer, layout.WRENCH, WrenchStamped.msgtype, scan.force,
+                                        scan.force.frame_id or layout.SENSOR_FRAME)]
+        if scan.pose is not None:
+            series_writers.append(_SeriesWriter(writer, layout.ECM_POSE, PoseStamped.msgtype, scan.pose,
+                                                layout.WORLD_FRAME))
         frames = ordered_map(pool, encode, _stereo_messages(reader, scan, plan), window=4 * max(1, options.workers))
         with tqdm(total=len(plan.stamps_ns), desc=f"convert {scan.path.name}", unit="frame",
                   disable=not options.progress) as bar:
             for k, (left_payload, right_payload) in enumerate(frames):
                 stamp = int(plan.stamps_ns[k])
-                _write_series(writer, layout.WRENCH, WrenchStamped.msgtype, force, force_frame,
-                              int(force_until[k - 1]) if k else 0, int(force_until[k]))
-                if pose is not None:
-                    _write_series(writer, layout.ECM_POSE, PoseStamped.msgtype, pose, layout.WORLD_FRAME,
-                                  int(pose_until[k - 1]) if k else 0, int(pose_until[k]))
+                for series_writer in series_writers:
+                    series_writer.write_until(stamp)
                 for topic, payload in info_payloads:
                     writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
                 writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
                 writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
                 bar.update()
-        _write_series(writer, layout.WRENCH, WrenchStamped.msgtype, force, force_frame, int(force_until[-1]),
-                      len(force.stamps_ns))
-        if pose is not None:
-            _write_series(writer, layout.ECM_POSE, PoseStamped.msgtype, pose, layout.WORLD_FRAME,
-                          int(pose_until[-1]), len(pose.stamps_ns))
+        for series_writer in series_writers:
+            series_writer.write_until(None)
 
 
 def stamped_payload_table(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> np.ndarray:
@@ -1074,13 +1069,28 @@ def stamped_payloads(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -
     return [row.tobytes() for row in stamped_payload_table(stamps_ns, frame_id, values)]
 
 
-def _write_series(writer: McapWriter, topic: str, msgtype: str, series: Series, frame_id: str, start: int,
-                  stop: int) -> None:
-    """Messages start..stop-1 of a force or pose series, in one call to the writer."""
-    if stop > start:
-        stamps = series.stamps_ns[start:stop]
-        writer.write_payloads(topic, msgtype, stamps, stamped_payload_table(stamps, frame_id,
-                                                                            series.values[start:stop]))
+class _SeriesWriter:
+    """Writes a force or pose series in stamp order as the frames go by: `write_until(stamp)` makes sure
+    every sample up to `stamp` is written. At 1 kHz the per-call costs add up, so samples are encoded
+    and written `batch` at a time, whenever that many are due (the series has chunks of its own in the
+    file, `McapWriter(separate_topics=...)`, so waiting a few frames moves nothing in the file)."""
+
+    def __init__(self, writer: McapWriter, topic: str, msgtype: str, series: Series, frame_id: str,
+                 batch: int = 512):
+        self.writer, self.topic, self.msgtype, self.series, self.frame_id = writer, topic, msgtype, series, frame_id
+        self.batch, self.done = batch, 0
+
+    def write_until(self, stamp_ns: int | None) -> None:
+        """The samples up to `stamp_ns` once `batch` of them are due; every remaining one for None."""
+        stamps = self.series.stamps_ns
+        stop = len(stamps) if stamp_ns is None else int(np.searchsorted(stamps, stamp_ns, side="right"))
+        if stop - self.done < (1 if stamp_ns is None else self.batch):
+            return
+        for start in range(self.done, stop, 8 * self.batch):  # a bounded table even for a long gap
+            rows = slice(start, min(stop, start + 8 * self.batch))
+            self.writer.write_payloads(self.topic, self.msgtype, stamps[rows],
+                                       stamped_payload_table(stamps[rows], self.frame_id, self.series.values[rows]))
+        self.done = stop
 
 
 def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
