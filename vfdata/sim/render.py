@@ -13,6 +13,7 @@ Camera frames follow vfdata.calibration: x right, y down, z forward, mm.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -120,6 +121,38 @@ def cylinder_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, 
         quads.append(np.stack([base + k, base + (k + 1) % n_around, np.full(n_around, base + n_around),
                                np.full(n_around, base + n_around)], axis=1))
     quads = np.concatenate(quads)
+    return Mesh(verts, quads, normals, np.zeros((len(verts), 0)), np.full((len(quads), 1), material))
+
+
+@lru_cache(maxsize=8)
+def _capped_tube_template(n_around: int, pieces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit cylinder along local z from 0 to 1, cut into `pieces` that get longer away from z = 0,
+    with a flat cap at z = 0: local vertex coordinates (cos, sin, t) (V, 3), quads, and which
+    vertices belong to the cap (their normal is -axis)."""
+    t = np.linspace(0.0, 1.0, pieces + 1) ** 2
+    ang = 2 * np.pi * np.arange(n_around) / n_around
+    ring = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    side = np.concatenate([np.repeat(ring, pieces + 1, axis=0).reshape(n_around, pieces + 1, 2).transpose(1, 0, 2),
+                           np.repeat(t[:, None, None], n_around, axis=1)], axis=2).reshape(-1, 3)
+    cap = np.concatenate([np.concatenate([ring, np.zeros((n_around, 1))], axis=1), [[0.0, 0.0, 0.0]]])
+    k = np.arange(n_around)
+    base = len(side)
+    cap_quads = np.stack([base + k, base + (k + 1) % n_around, np.full(n_around, base + n_around),
+                          np.full(n_around, base + n_around)], axis=1)
+    quads = np.concatenate([grid_quads(pieces + 1, n_around, wrap_cols=True), cap_quads])
+    is_cap = np.concatenate([np.zeros(len(side), bool), np.ones(len(cap), bool)])
+    return np.concatenate([side, cap]), quads, is_cap
+
+
+def capped_tube_mesh(p0: np.ndarray, p1: np.ndarray, radius: float, n_around: int, material: float,
+                     pieces: int = 1) -> Mesh:
+    """A cylinder from p0 to p1 capped at p0, its side cut into `pieces` that get longer toward p1;
+    face_attrs = [material id]. Built from a cached template: cheap enough to rebuild every frame."""
+    local, quads, is_cap = _capped_tube_template(n_around, pieces)
+    length, a, u, v = axis_frame(p0, p1)
+    radial = local[:, :1] * u + local[:, 1:2] * v
+    verts = p0 + radius * radial + length * local[:, 2:3] * a
+    normals = np.where(is_cap[:, None], -a, radial)
     return Mesh(verts, quads, normals, np.zeros((len(verts), 0)), np.full((len(quads), 1), material))
 
 

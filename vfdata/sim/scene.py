@@ -19,9 +19,9 @@ from vfdata.sim.render import (
     Mesh,
     NoisePool,
     Palette,
-    axis_frame,
     box_mesh,
     bumped_normals,
+    capped_tube_mesh,
     cylinder_mesh,
     finish,
     fractal_noise,
@@ -241,32 +241,6 @@ class SceneRenderer:
         tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
         return Mesh(verts, self.tube_quads, normals, self.tube_uv, tangent.astype(np.float32))
 
-    def _shaft(self, p0: np.ndarray, p1: np.ndarray, radius: float = 4.2, n_around: int = 20,
-               pieces: int = 10) -> Mesh:
-        """The instrument shaft: a cylinder cut into pieces that get longer away from the tip (so the
-        near-plane clipping of quads loses little of it near the camera), capped at the tip."""
-        if not hasattr(self, "_shaft_local"):
-            t = np.linspace(0.0, 1.0, pieces + 1) ** 2
-            ang = 2 * np.pi * np.arange(n_around) / n_around
-            cos, sin = np.repeat(np.cos(ang)[None], pieces + 1, 0), np.repeat(np.sin(ang)[None], pieces + 1, 0)
-            along = np.repeat(t[:, None], n_around, 1)
-            local = np.stack([cos.ravel(), sin.ravel(), along.ravel()], 1)
-            local = np.concatenate([local, [[0.0, 0.0, 0.0]]])  # cap centre
-            quads = grid_quads(pieces + 1, n_around, wrap_cols=True)
-            k = np.arange(n_around)
-            cap = np.stack([k, (k + 1) % n_around, np.full(n_around, len(local) - 1),
-                            np.full(n_around, len(local) - 1)], 1)
-            self._shaft_local = (local, np.concatenate([quads, cap]))
-        local, quads = self._shaft_local
-        length, a, u, v = axis_frame(p0, p1)
-        radial = local[:, :1] * u + local[:, 1:2] * v
-        verts = p0 + radius * radial + length * local[:, 2:3] * a
-        normals = radial.copy()
-        normals[-1] = -a
-        # The cap's ring shares the first ring's vertices; its quads use the side normals there,
-        # which is close enough for a 4 mm disc seen mostly edge-on.
-        return Mesh(verts, quads, normals, np.zeros((len(verts), 0)), np.full((len(quads), 1), float(SHAFT)))
-
     def instrument_mesh(self, grasp_o: np.ndarray, twist_rad: float, jaw_rad: float) -> Mesh:
         """Grasper (jaws, wrist, shaft) in the left camera frame, for a grasp point (object frame),
         a twist about the tube axis and a jaw opening angle."""
@@ -288,8 +262,10 @@ class SceneRenderer:
             parts.append(box_mesh(centre, np.stack([d, nn, b], axis=1), np.array([6.2, 1.0, 1.9]), STEEL,
                                   taper=0.6))
         wrist_end = hinge + 9.0 * shaft_dir
-        parts.append(cylinder_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.2, 16, STEEL, True, False))
-        parts.append(self._shaft(wrist_end, spec.rcm_o_mm + 40.0 * shaft_dir))
+        parts.append(capped_tube_mesh(hinge - 1.0 * shaft_dir, wrist_end, 3.2, 16, STEEL))
+        # The shaft reaches past the endoscope's near plane, where whole quads are dropped: it is cut
+        # into pieces (shortest at the wrist).
+        parts.append(capped_tube_mesh(wrist_end, spec.rcm_o_mm + 40.0 * shaft_dir, 4.2, 20, SHAFT, pieces=10))
         mesh = Mesh.concat(parts)
         return mesh.transformed(self.r_co, self.t_co)
 
