@@ -132,3 +132,19 @@ def test_views_differ_by_the_baseline_disparity(scene):
         costs = [np.square(right[y - 7:y + 8, x - d - 7:x - d + 8] - patch).sum() for d in range(0, 80)]
         errors.append(abs(int(np.argmin(costs)) - expected))
     assert np.median(errors) <= 1.0
+
+
+def test_reblurring_only_around_the_moving_objects_equals_blurring_the_whole_image():
+    from vfdata.sim.render import blur, finish
+
+    rng = np.random.default_rng(1)
+    static = rng.integers(0, 256, (3, 60, 80), dtype=np.uint8)
+    blurred_static = blur(cv2.merge(list(static)), 0.7)
+    zero = np.zeros((60, 80, 3), np.uint8)
+    for box in ((10, 5, 30, 25), (0, 0, 12, 60), (70, 50, 80, 60)):
+        planes = static.copy()
+        x0, y0, x1, y1 = box
+        planes[:, y0:y1, x0:x1] = rng.integers(0, 256, (3, y1 - y0, x1 - x0), dtype=np.uint8)
+        whole = finish(planes, (zero, zero), 0.7)
+        assert np.array_equal(finish(planes, (zero, zero), 0.7, blurred_static, box), whole)
+        assert not np.array_equal(blurred_static, whole)

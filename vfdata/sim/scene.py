@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from vfdata.calibration import PinholeCamera
@@ -19,6 +20,7 @@ from vfdata.sim.render import (
     Mesh,
     NoisePool,
     Palette,
+    blur,
     box_mesh,
     bumped_normals,
     capped_tube_mesh,
@@ -110,6 +112,7 @@ class _StaticView:
     color: np.ndarray        # (3, H*W) uint8 display values (planes)
     depth: np.ndarray        # (H*W,) float32 mm, inf where nothing
     vignette: np.ndarray     # (H*W,) float32
+    blurred: np.ndarray      # (H, W, 3) uint8: the colour, optically blurred
 
 
 @dataclass
@@ -207,7 +210,8 @@ class SceneRenderer:
         color[:, bed_frag.flat] = tone_map(shade(bed_frag.position(cam), normal, albedo, gloss,
                                                  spec.bed_palette.shininess, light, vig[bed_frag.flat], glint=3.0))
         color[:, fix_frag.flat] = self._shade_materials(fix_frag, fixture, cam, light, vig[fix_frag.flat])
-        return _StaticView(color, depth, vig)
+        blurred = blur(cv2.merge(list(color.reshape(3, cam.height, cam.width))), spec.blur_sigma)
+        return _StaticView(color, depth, vig, blurred)
 
     @staticmethod
     def _shade_materials(frag: Fragments, mesh: Mesh, cam: PinholeCamera, light: Light,
@@ -303,7 +307,11 @@ class SceneRenderer:
             tool_color = self._shade_materials(i_frag, tool, cam, light, static.vignette.take(i_frag.flat))
             for plane, values in zip(planes, tool_color, strict=True):
                 plane[i_frag.flat] = values
-            img = finish(color.reshape(3, cam.height, cam.width), self.noise.draw(self.rng), spec.blur_sigma)
+            boxes = [f.box for f in (t_frag, i_frag) if len(f.flat)]
+            box = (min(b[0] for b in boxes), min(b[1] for b in boxes), max(b[2] for b in boxes),
+                   max(b[3] for b in boxes)) if boxes else (0, 0, 0, 0)
+            img = finish(color.reshape(3, cam.height, cam.width), self.noise.draw(self.rng), spec.blur_sigma,
+                         static.blurred, box)
             images.append(img)
             if view == 0:
                 depth[np.isinf(depth)] = 0.0
