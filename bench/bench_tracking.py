@@ -27,11 +27,18 @@ import numpy as np
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
-def speed_run(args: tuple[int, int, int, str]) -> tuple[float, float]:
-    """(wall fps, cpu fps) of `frames` updates on a procedural sheet seeded by `seed`."""
+def speed_run(args: tuple[int, int, int, str]) -> tuple[float, float, float]:
+    """(wall fps, cpu fps, floor cpu fps) of `frames` updates on a procedural sheet seeded by `seed`.
+
+    The floor is the nearest-neighbour search alone, run in the same process right after: one KD-tree
+    build per frame and one query of the 256 points per optimisation step, as the tracker does. It
+    is what any update with this search costs, so tracker / floor is a ratio that does not depend on
+    the load of the machine."""
     import torch
+    from scipy.spatial import cKDTree
 
     from vfdata.tracking import GeometryTracker
+    from vfdata.tracking.geometry import KDTREE_LEAF_SIZE
     from vfdata.tracking.synthetic import DeformingSheet, press_and_stretch
 
     frames, cloud_points, seed, mode = args
@@ -45,16 +52,27 @@ def speed_run(args: tuple[int, int, int, str]) -> tuple[float, float]:
     for c in clouds[4:]:
         tracker.update(c)
     n = frames - 4
-    return n / (time.perf_counter() - t0), n / (time.process_time() - c0)
+    wall, cpu = n / (time.perf_counter() - t0), n / (time.process_time() - c0)
+    points = tracker.points
+    c0 = time.process_time()
+    for c in clouds[4:]:
+        tree = cKDTree(c, leafsize=KDTREE_LEAF_SIZE, balanced_tree=False, compact_nodes=False)
+        for _ in range(tracker.options.iterations):
+            tree.query(points.astype(np.float32))
+    return wall, cpu, n / (time.process_time() - c0)
 
 
 def bench_speed(frames: int, cloud_points: int) -> None:
-    wall, cpu = speed_run((frames, cloud_points, 0, "geometry"))
-    print(f"speed, 1 process:   {wall:6.1f} frames/s wall, {cpu:6.1f} frames/s CPU (target >= 26)")
+    print(f"load average before: {os.getloadavg()[0]:.1f}")
+    wall, cpu, floor = speed_run((frames, cloud_points, 0, "geometry"))
+    print(f"speed, 1 process:   {wall:6.1f} frames/s wall, {cpu:6.1f} frames/s CPU (target >= 26 wall); "
+          f"KD-tree floor {floor:6.1f} frames/s CPU, tracker at {cpu / floor:.2f} of it")
     with mp.get_context("spawn").Pool(2) as pool:
         results = pool.map(speed_run, [(frames, cloud_points, s, "geometry") for s in (1, 2)])
-    for i, (w, c) in enumerate(results):
-        print(f"speed, 2 processes: {w:6.1f} frames/s wall, {c:6.1f} frames/s CPU (recording {i})")
+    for i, (w, c, f) in enumerate(results):
+        print(f"speed, 2 processes: {w:6.1f} frames/s wall, {c:6.1f} frames/s CPU (recording {i}, target >= 26 wall); "
+              f"KD-tree floor {f:6.1f} frames/s CPU, tracker at {c / f:.2f} of it")
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 
 def bench_accuracy(folders: list[str], trackers: list[str], frames: int | None) -> None:

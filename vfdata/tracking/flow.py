@@ -51,3 +51,33 @@ def track_lk(
     inside = (new[:, 0] >= 0) & (new[:, 0] <= w - 1) & (new[:, 1] >= 0) & (new[:, 1] <= h - 1)
     ok = finite & (st_f[:, 0] == 1) & (st_b[:, 0] == 1) & (fb_error < max_forward_backward_px) & inside
     return new, ok
+
+
+def refine_from_reference(
+    reference: np.ndarray,
+    current: np.ndarray,
+    reference_uv: np.ndarray,
+    guess_uv: np.ndarray,
+    max_disagreement_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Follow pixels `reference_uv` (N, 2) of the gray `reference` image straight into `current`,
+    starting Lucas-Kanade at `guess_uv` (N, 2), the frame-to-frame estimate of the same points.
+
+    Frame-to-frame flow drifts: each step's sub-pixel error adds up over hundreds of frames. Matching
+    the reference image's patch instead does not accumulate anything, but it can lock onto the wrong
+    texture where the tissue looks different now (turned, stretched, under a highlight). The two
+    estimates check each other: the reference match is kept (`ok`) only where it converged and lies
+    within `max_disagreement_px` of the guess, which lets it correct the drift a little every frame
+    and never jump away."""
+    start = np.asarray(reference_uv, dtype=np.float32).reshape(-1, 1, 2)
+    guess = np.asarray(guess_uv, dtype=np.float32).reshape(-1, 2)
+    if len(start) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    params = dict(winSize=(LK_WINDOW_PX, LK_WINDOW_PX), maxLevel=LK_LEVELS, criteria=LK_CRITERIA,
+                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    # OpenCV writes its answer into the initial-guess array: hand it a copy.
+    found, status, _ = cv2.calcOpticalFlowPyrLK(reference, current, start, guess.reshape(-1, 1, 2).copy(), **params)
+    found = found[:, 0, :]
+    ok = (status[:, 0] == 1) & np.isfinite(found).all(axis=1)
+    ok &= np.linalg.norm(found - guess, axis=1) < max_disagreement_px
+    return found, ok

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from vfdata.calibration import PinholeCamera
 from vfdata.tracking.adam import Adam
-from vfdata.tracking.flow import to_gray, track_lk
+from vfdata.tracking.flow import refine_from_reference, to_gray, track_lk
 from vfdata.tracking.llr import nearest_neighbours, normal_matrix, reconstruction_weights
 from vfdata.tracking.losses import chamfer_term, flow_term
 from vfdata.tracking.sampling import farthest_point_sampling
@@ -73,6 +73,9 @@ class TrackerOptions:
     llr_relative: bool = True
     visibility_every_iteration: bool = True  # measure LLR residuals from their value on the frame the weights come from
     flow_max_forward_backward_px: float = 1.0
+    # geometry+: also match each point's reference-image patch, to undo the drift of frame-to-frame flow
+    # (see vfdata.tracking.flow.refine_from_reference); 0 turns it off.
+    reference_match_px: float = 2.0
     reference_image: np.ndarray | None = None  # geometry+: the left image of the reference frame
 
 
@@ -110,6 +113,7 @@ class GeometryTracker:
         chosen = farthest_point_sampling(reference_points, num_points, seed=seed)
         self.reference = reference_points[chosen]  # (n, 3) float64, mm
         self._points = self.reference.copy()
+        self._reference_uv = None if camera is None else camera.project(self.reference)
 
         # The SIREN sees reference positions scaled into [-1, 1], where omega_0 = 30 is meant to work.
         center = 0.5 * (self.reference.min(axis=0) + self.reference.max(axis=0))
@@ -128,6 +132,7 @@ class GeometryTracker:
         # The LLR terms are quadratic in the points: keep the reference's part as a matrix (see _llr_quadratic).
         self._ref_matrix, self._ref_offset = self._llr_quadratic(self.reference, opt.lambda_ref)
         self._prev_image = None if opt.reference_image is None else to_gray(opt.reference_image)
+        self._reference_image = self._prev_image
         self._prev_visible = np.ones(len(self.reference), dtype=bool)
 
     @property
@@ -240,6 +245,13 @@ class GeometryTracker:
         uv = cam.project(previous_points)
         new_uv, ok = track_lk(previous_image, image, uv, self.options.flow_max_forward_backward_px)
         ok &= previous_visible
+        # Without the reference frame's own image there is nothing to match (reference_image not given).
+        if self.options.reference_match_px > 0 and self._reference_image is not None and ok.any():
+            idx = np.flatnonzero(ok)
+            matched, good = refine_from_reference(
+                self._reference_image, image, self._reference_uv[idx], new_uv[idx], self.options.reference_match_px
+            )
+            new_uv[idx[good]] = matched[good]
         if mask is not None:
             ok &= _pixels_in_mask(new_uv, mask)
         idx = np.flatnonzero(ok)
