@@ -243,18 +243,18 @@ class Fragments:
 
 
 def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Per triangle, (A, B, C) with A x + B y + C = f through its three vertices. x, y: (T, 3);
-    f: (T, 3, C). Returns (C, 3, T); degenerate triangles get the constant f0."""
-    dx1, dx2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
-    dy1, dy2 = y[:, 1] - y[:, 0], y[:, 2] - y[:, 0]
+    """Per triangle, (A, B, C) with A x + B y + C = f through its three vertices. x, y: (3, T) (one
+    row per corner); f: (3, C, T). Returns (C, 3, T) float32; degenerate triangles get the constant f0."""
+    dx1, dx2 = x[1] - x[0], x[2] - x[0]
+    dy1, dy2 = y[1] - y[0], y[2] - y[0]
     det = dx1 * dy2 - dx2 * dy1
     ok = np.abs(det) > 1e-9
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
-    df1, df2 = f[:, 1] - f[:, 0], f[:, 2] - f[:, 0]
-    a = (df1 * dy2[:, None] - df2 * dy1[:, None]) * inv
-    b = (dx1[:, None] * df2 - dx2[:, None] * df1) * inv
-    c = f[:, 0] - a * x[:, :1] - b * y[:, :1]
-    return np.ascontiguousarray(np.stack([a, b, c], axis=0).transpose(2, 0, 1), dtype=np.float32)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    df1, df2 = f[1] - f[0], f[2] - f[0]
+    a = (df1 * dy2 - df2 * dy1) * inv
+    b = (dx1 * df2 - dx2 * df1) * inv
+    c = f[0] - a * x[0] - b * y[0]
+    return np.stack([a, b, c], axis=1).astype(np.float32)
 
 
 def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) -> Fragments:
@@ -322,12 +322,15 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     second = (e[0].take(rank) * px + e[1].take(rank) * py + e[2].take(rank)) > 0
     tri = 2 * rank + second
     # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every drawn quad.
-    dq = q[ids]
-    tri_verts = np.stack([dq[:, [0, 1, 2]], dq[:, [0, 2, 3]]], axis=1).reshape(-1, 3)  # (2 drawn, 3)
+    dq = qt[:, ids]
+    # Corners (3, 2 drawn) of the triangles 2 r (corners 0, 1, 2) and 2 r + 1 (corners 0, 2, 3).
+    corners = np.stack([np.stack([dq[0], dq[0]], 1), np.stack([dq[1], dq[2]], 1),
+                        np.stack([dq[2], dq[3]], 1)]).reshape(3, -1)
     inv_z = 1.0 / np.where(z > _NEAR_MM, z, np.inf)
-    chans = np.concatenate([np.ones((len(z), 1)), mesh.normals, mesh.attrs], axis=1) * inv_z[:, None]
+    chans = np.concatenate([inv_z[None], mesh.normals.T * inv_z, mesh.attrs.T * inv_z])  # (C, N)
     with np.errstate(invalid="ignore"):
-        coef = _plane_coefficients(uv[tri_verts, 0], uv[tri_verts, 1], chans[tri_verts])
+        coef = _plane_coefficients(uv[:, 0].take(corners), uv[:, 1].take(corners),
+                                   chans[:, corners].transpose(1, 0, 2))
     coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
     a0, b0, c0 = coef[0]
     inv_depth = a0.take(tri) * px
@@ -571,6 +574,23 @@ def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray
     tu += normal
     tu *= f32(1.0) / np.sqrt(np.maximum(_dot(tu, tu), f32(1e-24)))
     return tu
+
+
+def bump_in_frame(normal: np.ndarray, frame: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
+                  strength: float) -> np.ndarray:
+    """Unit normals (3, P) perturbed by a bump map's gradients in a given tangent frame: `frame` (6, P)
+    holds the unit tangents across (u) and along (v) the texture, e.g. one frame per quad. `normal`
+    need not be exactly unit length (the result is normalised)."""
+    k = np.float32(-strength)
+    gu = grad_u * k
+    gv = grad_v * k
+    out = np.empty_like(normal)
+    for c in range(3):
+        np.multiply(frame[c], gu, out=out[c])
+        out[c] += frame[3 + c] * gv
+        out[c] += normal[c]
+    out *= np.float32(1.0) / np.sqrt(np.maximum(_dot(out, out), np.float32(1e-24)))
+    return out
 
 
 def vignette(camera: PinholeCamera, strength: float = 1.0) -> np.ndarray:

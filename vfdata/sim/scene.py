@@ -22,6 +22,7 @@ from vfdata.sim.render import (
     Palette,
     blur,
     box_mesh,
+    bump_in_frame,
     bumped_normals,
     capped_tube_mesh,
     cylinder_mesh,
@@ -237,13 +238,17 @@ class SceneRenderer:
         cols = p.shape[1]
         verts = np.concatenate([p.reshape(-1, 3), np.tile(apex, (cols, 1))])
         normals = np.concatenate([n.reshape(-1, 3), np.tile(axis, (cols, 1))])
-        # The direction along the tube (for the bump map's tangent frame), one per quad: the quads are
-        # small, and the shading orthogonalises it against the interpolated normal anyway.
+        # The bump map's tangent frame (around, along the tube), one per quad: the quads are small, and
+        # the bump only tilts the normal a little within it.
         along = np.concatenate([ps.reshape(-1, 3), ps[-1]])
         q = self.tube_quads_t
-        tangent = along[q[0]] + along[q[1]] + along[q[2]] + along[q[3]]
-        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-        return Mesh(verts, self.tube_quads, normals, self.tube_uv, tangent.astype(np.float32))
+        t = along[q[0]] + along[q[1]] + along[q[2]] + along[q[3]]
+        nq = normals[q[0]] + normals[q[1]] + normals[q[2]] + normals[q[3]]
+        nq /= np.maximum(np.linalg.norm(nq, axis=1, keepdims=True), 1e-12)
+        t -= np.einsum("qx,qx->q", t, nq)[:, None] * nq
+        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+        frame = np.concatenate([np.cross(nq, t), t], axis=1).astype(np.float32)
+        return Mesh(verts, self.tube_quads, normals, self.tube_uv, frame)
 
     def instrument_mesh(self, grasp_o: np.ndarray, twist_rad: float, jaw_rad: float) -> Mesh:
         """Grasper (jaws, wrist, shaft) in the left camera frame, for a grasp point (object frame),
@@ -298,8 +303,8 @@ class SceneRenderer:
             color = static.color.copy()
             planes = list(color)
             albedo, gloss, bump = self.tube_texture.sample(t_frag.attrs[0], t_frag.attrs[1])
-            normal = bumped_normals(t_frag.values[:3], t_frag.face(tube.face_attrs), bump[0], bump[1],
-                                    spec.bump_strength)
+            normal = bump_in_frame(t_frag.values[:3], t_frag.face(tube.face_attrs), bump[0], bump[1],
+                                   spec.bump_strength)
             rad = shade(t_frag.position(cam), normal, albedo, gloss, spec.tube_palette.shininess, light,
                         static.vignette.take(t_frag.flat), glint=3.0)
             for plane, values in zip(planes, tone_map(rad), strict=True):
