@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 from rawfixtures import calibration
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
@@ -19,14 +20,15 @@ from rosbags.typesys import Stores, get_typestore
 
 from vfdata.cli import main
 from vfdata.commands.inspect_bag import inspect_bag_text
-from vfdata.conversion import bags
-from vfdata.conversion.bags import BagTopics, convert_bag
+from vfdata.conversion import bag_index, bags
+from vfdata.conversion.bags import BagTopics, convert_bag, stamped_payload_table
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recording import layout
 from vfdata.recording.inspect import check_file
-from vfdata.recording.messages import PoseStamped, WrenchStamped
+from vfdata.recording.messages import CameraInfo, CompressedImage, PoseStamped, WrenchStamped
 from vfdata.recording.reader import Recording
+from vfdata.recording.writer import McapWriter
 
 T0_NS = 1_700_000_000_123_456_789
 FRAME_NS = 33_333_333
@@ -462,3 +464,219 @@ def test_cli_convert_bag(tmp_path, capsys):
     assert bags.is_bag(storage_file)
     assert main(["convert", str(storage_file), str(tmp_path / "file.mcap"), "--format", "png", "--quiet"]) == 0
     check_recording(tmp_path / "file.mcap", spec)
+
+
+# -- random access (bag_index), bulk decoding and bulk writing ----------------------------------------
+def bag_with_every_shape(path: Path, ros2: bool, lz4: bool = False) -> None:
+    """A small bag with Image and CompressedImage messages whose frame_id and encoding lengths cover
+    every CDR alignment, force from two publishers of one topic (ROS 1), and both pose types."""
+    ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    T = ts.types
+    serialize = ts.serialize_cdr if ros2 else ts.serialize_ros1
+
+    def header(stamp: int, frame: str):
+        time = T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9)
+        return T["std_msgs/msg/Header"](stamp=time, frame_id=frame) if ros2 else T["std_msgs/msg/Header"](
+            seq=7, stamp=time, frame_id=frame)
+
+    vec = T["geometry_msgs/msg/Vector3"]
+    quat = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.6, w=0.8)
+    writer = Writer2(path, version=9) if ros2 else Writer1(path)
+    if lz4:
+        writer.set_compression(Writer1.CompressionFormat.LZ4)
+    with writer:
+        image = writer.add_connection("/cam/image", "sensor_msgs/msg/Image", typestore=ts)
+        compressed = writer.add_connection("/cam/compressed", "sensor_msgs/msg/CompressedImage", typestore=ts)
+        kw = {} if ros2 else {"callerid": "/netft_a"}
+        forces = [writer.add_connection("/netft_data", "geometry_msgs/msg/WrenchStamped", typestore=ts, **kw)]
+        if not ros2:
+            forces.append(writer.add_connection("/netft_data", "geometry_msgs/msg/WrenchStamped", typestore=ts,
+                                                callerid="/netft_b"))
+        poses = writer.add_connection("/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
+        transforms = writer.add_connection("/tf_pose", "geometry_msgs/msg/TransformStamped", typestore=ts)
+        for i in range(9):
+            stamp = T0_NS + i * FRAME_NS
+            frame, encoding = "f" * i, ("mono8", "bgr8", "rgb8", "bayer_rggb8")[i % 4]
+            pixels = np.arange(4 * 6 * 3, dtype=np.uint8) + i
+            writer.write(image, stamp + 1, serialize(T["sensor_msgs/msg/Image"](
+                header=header(stamp, frame), height=4, width=6, encoding=encoding, is_bigendian=0, step=18,
+                data=pixels), "sensor_msgs/msg/Image"))
+            writer.write(compressed, stamp + 2, serialize(T["sensor_msgs/msg/CompressedImage"](
+                header=header(stamp, frame), format="jpeg"[: 1 + i % 4], data=pixels[: 5 + i]),
+                "sensor_msgs/msg/CompressedImage"))
+            for j in range(20):
+                t = stamp + j * FORCE_NS
+                writer.write(forces[j % len(forces)], t + 3, serialize(T["geometry_msgs/msg/WrenchStamped"](
+                    header=header(t, "ati" if i < 5 else "ati_2"), wrench=T["geometry_msgs/msg/Wrench"](
+                        force=vec(x=t % 7 + 0.5, y=-1.25, z=j / 3), torque=vec(x=1e-3, y=i / 7, z=-j))),
+                    "geometry_msgs/msg/WrenchStamped"))
+            point = T["geometry_msgs/msg/Point"](x=0.1 * i, y=0.2, z=0.3)
+            writer.write(poses, stamp + 4, serialize(T["geometry_msgs/msg/PoseStamped"](
+                header=header(stamp, "ECM_base"), pose=T["geometry_msgs/msg/Pose"](position=point, orientation=quat)),
+                "geometry_msgs/msg/PoseStamped"))
+            writer.write(transforms, stamp + 5, serialize(T["geometry_msgs/msg/TransformStamped"](
+                header=header(stamp, "ECM_base"), child_frame_id="ECM"[: i % 4], transform=T[
+                    "geometry_msgs/msg/Transform"](translation=vec(x=0.1, y=0.2, z=0.1 * i), rotation=quat)),
+                "geometry_msgs/msg/TransformStamped"))
+
+
+def iterated(reader, topic: str) -> list[tuple[int, bytes]]:
+    connections = [c for c in reader.connections if c.topic == topic]
+    return [(t, bytes(raw)) for _, t, raw in reader.messages(connections=connections)]
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2):
+    bag = tmp_path / ("b" if ros2 else "b.bag")
+    bag_with_every_shape(bag, ros2)
+    with bags.open_bag(bag) as reader:
+        topics = set(reader.topics)
+        indexed = bag_index.open_indexed_bag(reader, bag, topics)
+        assert indexed is not None
+        try:
+            for topic in topics:
+                expect = iterated(reader, topic)
+                assert indexed.receive_ns(topic).tolist() == [t for t, _ in expect], topic
+                assert [bytes(indexed.message(topic, i)) for i in range(len(expect))] == [m for _, m in expect]
+                assert [bytes(indexed.head(topic, i)) for i in range(len(expect))] == [
+                    m[:bag_index.HEAD_BYTES] for _, m in expect]
+                blocks = list(indexed.payload_blocks(topic))
+                assert np.concatenate([r for r, _ in blocks]).tolist() == [t for t, _ in expect]
+                assert [bytes(p) for _, payloads in blocks for p in payloads] == [m for _, m in expect]
+            assert isinstance(next(indexed.payload_blocks("/pose"))[1], np.ndarray)  # one payload length
+            assert isinstance(next(indexed.payload_blocks("/netft_data"))[1], list)  # two frame_id lengths
+        finally:
+            indexed.close()
+
+
+def test_indexed_access_only_where_cheap(tmp_path):
+    bag_with_every_shape(tmp_path / "lz4.bag", ros2=False, lz4=True)
+    write_bag(tmp_path / "mcap", BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=2))
+    for bag in (tmp_path / "lz4.bag", tmp_path / "mcap"):
+        with bags.open_bag(bag) as reader:
+            assert bag_index.open_indexed_bag(reader, bag, set(reader.topics)) is None
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_image_heads_match_deserialisation(tmp_path, ros2):
+    bag = tmp_path / ("b" if ros2 else "b.bag")
+    bag_with_every_shape(bag, ros2)
+    with bags.open_bag(bag) as reader:
+        for topic, msgtype in (("/cam/image", bags.IMAGE), ("/cam/compressed", bags.COMPRESSED_IMAGE)):
+            for _, raw in iterated(reader, topic):
+                msg = reader.deserialize(raw, msgtype)
+                head = bag_index.image_head(raw[:bag_index.HEAD_BYTES], msgtype, ros2)
+                assert head == bags._head_of(msg)
+                assert head.stamp_ns == bags.header_stamp_ns(msg) and head.stamp_ns >= T0_NS
+                # cut before the last field it needs: no head, the caller deserialises the message
+                assert bag_index.image_head(raw[:head_length(raw, msgtype, ros2) - 1], msgtype, ros2) is None
+    assert bag_index.image_head(b"\x00\x00\x00\x00" + bytes(40), bags.IMAGE, ros2=True) is None  # big-endian CDR
+
+
+def head_length(raw: bytes, msgtype: str, ros2: bool) -> int:
+    """Bytes up to the end of the last field `image_head` reads (found by growing the prefix)."""
+    return next(n for n in range(len(raw) + 1) if bag_index.image_head(raw[:n], msgtype, ros2) is not None)
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_bulk_series_decoding_matches_deserialisation(tmp_path, ros2):
+    bag = tmp_path / ("b" if ros2 else "b.bag")
+    bag_with_every_shape(bag, ros2)
+    with bags.open_bag(bag) as reader:
+        for topic, width in (("/netft_data", 6), ("/pose", 7)):
+            raws = [m for _, m in iterated(reader, topic)]
+            first_frame = raws[:100]  # frame "ati" (WrenchStamped) / "ECM_base" (PoseStamped) only
+            stamps, values = bags._decode_fixed_batch(first_frame, width, ros2)
+            messages = [reader.deserialize(raw, reader.topics[topic].msgtype) for raw in first_frame]
+            assert stamps.tolist() == [bags.header_stamp_ns(m) for m in messages]
+            fields = [(m.wrench.force, m.wrench.torque) if width == 6 else bags._pose_fields(m) for m in messages]
+            expect = [[v.x, v.y, v.z] + ([v.w] if hasattr(v, "w") else []) for f in fields for v in f]
+            assert values.ravel().tolist() == [x for row in expect for x in row]
+            table = np.frombuffer(b"".join(first_frame), np.uint8).reshape(len(first_frame), -1)
+            assert np.array_equal(bags._decode_fixed_batch(table, width, ros2)[1], values)
+        # two frame ids in one block: not decoded in bulk (the caller goes message by message)
+        assert bags._decode_fixed_batch([m for _, m in iterated(reader, "/netft_data")], 6, ros2) is None
+        series = bags._SeriesReader(reader, bag, "/netft_data", 6)
+        connection = next(c for c in reader.connections if c.topic == "/netft_data")
+        for receive_ns, raw in iterated(reader, "/netft_data"):
+            series.add(connection, receive_ns, raw)
+        result = series.result()
+        assert len(result.stamps_ns) == 9 * 20 and result.frame_id == ""  # two frame ids: none kept
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_indexed_and_streamed_conversions_are_identical(tmp_path, ros2):
+    """The random-access path and rosbags' iterator (used for lz4 ROS 1 chunks and MCAP storage) give
+    the same recording, message by message."""
+    fast, slow = tmp_path / ("fast" if ros2 else "fast.bag"), tmp_path / ("slow" if ros2 else "slow.bag")
+    spec = BagSpec(ros2=ros2, extra_right_ns=(T0_NS + FRAME_NS // 2,), pose_type="TransformStamped")
+    write_bag(fast, spec)
+    write_bag(slow, BagSpec(ros2=ros2, storage=StoragePlugin.MCAP, lz4=not ros2,
+                            extra_right_ns=spec.extra_right_ns, pose_type="TransformStamped"))
+    with bags.open_bag(fast) as reader:
+        assert bag_index.open_indexed_bag(reader, fast, set(reader.topics)) is not None
+    with bags.open_bag(slow) as reader:
+        assert bag_index.open_indexed_bag(reader, slow, set(reader.topics)) is None
+    contents = [raw_messages(convert_bag(bag, tmp_path / f"{bag.stem}.mcap", options=PNG)) for bag in (fast, slow)]
+    check_recording(tmp_path / "fast.mcap", spec)
+    assert contents[0] == contents[1]
+
+
+def raw_messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
+    """Topic -> (log time, payload) of every message, read with the `mcap` package."""
+    topics: dict[str, list[tuple[int, bytes]]] = {}
+    with open(path, "rb") as stream:
+        for _schema, channel, message in make_reader(stream).iter_messages(log_time_order=True):
+            topics.setdefault(channel.topic, []).append((message.log_time, bytes(message.data)))
+    return topics
+
+
+def test_damaged_record_falls_back_to_rosbags_and_its_error(tmp_path):
+    bag = tmp_path / "d.bag"
+    write_bag(bag, BagSpec(frames=3))
+    with bags.open_bag(bag) as reader:
+        indexed = bag_index.open_indexed_bag(reader, bag, {"/netft_data"})
+        position = int(indexed._refs["/netft_data"][1][10])  # data of the 11th force message
+        indexed.close()
+    data = bytearray(bag.read_bytes())
+    record = data.rfind(b"op=\x02", 0, position)  # its record header's op field
+    data[record + 3] = 6  # a chunk-info op where a message should be
+    bag.write_bytes(bytes(data))
+    with bags.open_bag(bag) as reader:
+        assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
+    with pytest.raises(InputError, match="damaged bag"):
+        convert_bag(bag, tmp_path / "d.mcap", options=PNG)
+
+
+def test_payload_helpers_match_message_encoding():
+    info = CameraInfo(5, layout.LEFT_FRAME, 48, 64, "plumb_bob", np.zeros(5), np.eye(3), np.eye(3),
+                      np.hstack([np.eye(3), np.ones((3, 1))]), 0, 0, (0, 0, 0, 0, False))
+    stamp = 1_700_000_000_987_654_321
+    expect = CameraInfo(**{**info.__dict__, "stamp_ns": stamp}).encode()
+    assert bags.restamped(info.encode(), stamp) == expect
+    for frame in ("", "a", "stereo_left_optical"):
+        for fmt in ("jpeg", "png"):
+            data = np.arange(11, dtype=np.uint8).reshape(-1, 1)  # cv2.imencode's shape
+            assert bags.compressed_image_payload(stamp, frame, fmt, data) == CompressedImage(
+                stamp, frame, fmt, data.tobytes()).encode()
+
+
+def test_write_payloads_equals_one_write_per_message(tmp_path):
+    """`McapWriter.write_payloads` (used for the force and pose series) writes the same bytes as one
+    `write_payload` per message, chunk boundaries included."""
+    rng = np.random.default_rng(0)
+    stamps = np.sort(rng.integers(10**18, 2 * 10**18, 700))
+    table = stamped_payload_table(stamps, "ati", rng.normal(size=(700, 6)))
+    for kwargs in ({"separate_topics": ("/f",), "separate_batch": 64}, {"chunk_size": 5000}):
+        for name, bulk in (("one.mcap", False), ("bulk.mcap", True)):
+            with McapWriter(tmp_path / name, overwrite=True, **kwargs) as writer:
+                writer.write_payload("/img", CompressedImage.msgtype, int(stamps[0]), b"x" * 1000)
+                for part in np.array_split(np.arange(700), [5, 6, 300]):
+                    if bulk:
+                        writer.write_payloads("/f", WrenchStamped.msgtype, stamps[part], table[part])
+                    else:
+                        for i in part:
+                            writer.write_payload("/f", WrenchStamped.msgtype, int(stamps[i]), table[i].tobytes())
+        assert (tmp_path / "one.mcap").read_bytes() == (tmp_path / "bulk.mcap").read_bytes()
+        force = raw_messages(tmp_path / "bulk.mcap")["/f"]
+        assert force == [(int(t), row.tobytes()) for t, row in zip(stamps, table, strict=True)]
