@@ -394,7 +394,8 @@ def _sqlite_files(path: Path) -> list[Path] | None:
     """The .db3 files of an uncompressed sqlite3 ROS 2 bag (a folder, or one .db3 given alone)."""
     if path.is_file():
         return [path] if path.suffix == ".db3" else None
-    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: the topics' QoS make the file long
+    info = yaml.load((path / "metadata.yaml").read_text(), Loader=loader)["rosbag2_bagfile_information"]
     if info.get("storage_identifier") != "sqlite3" or (info.get("compression_mode") or "none").lower() != "none":
         return None
     return [path / Path(name).name for name in info["relative_file_paths"]]

@@ -13,12 +13,17 @@ topic names as defaults (every one can be remapped, see `BagTopics`):
 Acquisition time is `header.stamp`; a message whose stamp is 0 (header never filled in) takes the
 bag's receive time instead, with a warning.
 
-Two streaming passes over the bag:
-1. scan: the header of every image (image data is not kept), all force, pose and camera info
-   messages. Topics are chosen, frames paired and the force checked against the video span here,
-   so a bad bag fails before anything is encoded.
-2. convert: the images again, in bag order, decoded and JPEG/PNG-encoded on a thread pool and
-   written in stamp order with force and pose interleaved, as the folder converter does."""
+Two steps:
+1. scan: the stamp, encoding and size of every image, all force and pose samples, the first camera
+   info of each side. Topics are chosen, frames paired and the force checked against the video span
+   here, so a bad bag fails before anything is encoded.
+2. convert: the two images of each pair, in pair order, deserialised, decoded and JPEG/PNG-encoded
+   on a thread pool and written in stamp order with force and pose interleaved, as the folder
+   converter does.
+Where the storage allows random access (ROS 1 bags with uncompressed chunks, ROS 2 sqlite3 bags;
+`bag_index`), the scan reads only the first bytes of each image and the convert step fetches each
+image once, directly. Elsewhere (bz2/lz4 chunks, MCAP storage) both steps stream the bag through
+`rosbags`' iterator, which reads the images twice."""
 
 from __future__ import annotations
 
