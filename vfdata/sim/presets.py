@@ -100,8 +100,8 @@ COLON = TissueKind(
     dense_theta=32,
 )
 
-BED_PALETTE = Palette(light=(0.84, 0.55, 0.52), dark=(0.36, 0.035, 0.05), vessel=(0.30, 0.015, 0.03),
-                      blotch=(0.95, 0.80, 0.62), vessel_count=16, gloss=1.2, shininess=30.0, grain=0.12)
+BED_PALETTE = Palette(light=(0.78, 0.40, 0.44), dark=(0.30, 0.02, 0.06), vessel=(0.24, 0.01, 0.03),
+                      blotch=(0.90, 0.72, 0.70), vessel_count=16, gloss=0.7, shininess=60.0, grain=0.12)
 
 
 @dataclass(frozen=True)
