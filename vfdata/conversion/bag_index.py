@@ -184,7 +184,9 @@ def _u32_at(data: np.ndarray, starts: np.ndarray) -> np.ndarray:
 class _Ros1Bag(IndexedBag):
     """A ROS 1 bag whose chunks are all uncompressed, memory-mapped. The index `rosbags` read on opening
     (per connection: receive time, chunk, offset) locates every message; the record headers of the
-    topics asked for are checked in bulk against it (op, connection, time) before anything is used."""
+    topics asked for are checked in bulk against it (op, connection, time) before anything is used.
+    As with any mapped file, a bag truncated by another program during the conversion would stop the
+    process with SIGBUS instead of an error message; bags are not written while they are converted."""
 
     def __init__(self, buffer: mmap.mmap, refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
         self._mmap = buffer
