@@ -991,7 +991,9 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
 
     def encode_one(stream: ImageStream, k: int, raw: bytes | memoryview, frame: str) -> bytes:
         """One image as a CompressedImage CDR payload, built here in an encoding thread."""
-        msg = _deserialize(reader, scan.path, raw, connection_of[stream.topic])
+        # A memoryview: rosbags slices the CDR payload past its encapsulation header, a copy of the
+        # whole image for bytes, a view for a memoryview.
+        msg = _deserialize(reader, scan.path, memoryview(raw), connection_of[stream.topic])
         try:
             if stream.msgtype == COMPRESSED_IMAGE:
                 image = compressed_to_bgr(msg.format, msg.data)
