@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vfdata.sim.presets import get_preset
+from vfdata.sim.render import rasterize
 from vfdata.sim.scene import SceneRenderer
 from vfdata.sim.synthesize import build_recording, grasped_nodes
 
@@ -77,8 +78,8 @@ def _sgbm_depth(rec, frame) -> np.ndarray:
     """Depth (mm) from OpenCV SGBM on the pair as written to disk (JPEG, quality 95)."""
     cam = rec.spec.cam.camera
 
-    def as_written(rgb: np.ndarray) -> np.ndarray:
-        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    def as_written(bgr: np.ndarray) -> np.ndarray:
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         return cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
 
     block = 5
@@ -120,8 +121,8 @@ def test_views_differ_by_the_baseline_disparity(scene):
     """A patch of the tube in the left view appears in the right view shifted left by f * b / z."""
     rec, _, frame = scene
     cam = rec.spec.cam.camera
-    left = cv2.cvtColor(frame.left, cv2.COLOR_RGB2GRAY).astype(np.float32)
-    right = cv2.cvtColor(frame.right, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    left = cv2.cvtColor(frame.left, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    right = cv2.cvtColor(frame.right, cv2.COLOR_BGR2GRAY).astype(np.float32)
     inside = cv2.erode(frame.mask.astype(np.uint8), np.ones((31, 31), np.uint8)).astype(bool)
     ys, xs = np.nonzero(inside)
     errors = []
@@ -148,3 +149,10 @@ def test_reblurring_only_around_the_moving_objects_equals_blurring_the_whole_ima
         whole = finish(planes, (zero, zero), 0.7)
         assert np.array_equal(finish(planes, (zero, zero), 0.7, blurred_static, box), whole)
         assert not np.array_equal(blurred_static, whole)
+
+
+def test_a_mesh_out_of_view_gives_no_fragments(scene):
+    rec, renderer, _ = scene
+    behind = renderer.tube_mesh(rec.model.nodes).shifted(np.array([0.0, 0.0, -1000.0]))
+    frag = rasterize(rec.spec.cam.camera, behind).interpolate()
+    assert len(frag.flat) == 0 and frag.normal.shape == (3, 0) and frag.attrs.shape == (2, 0)

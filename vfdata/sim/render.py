@@ -236,10 +236,11 @@ class Fragments:
                          (self.py - np.float32(camera.cy)) * (z / np.float32(camera.fy)), z])
 
     @staticmethod
-    def empty() -> Fragments:
+    def empty(attrs: int) -> Fragments:
+        """No fragments, for a mesh with `attrs` vertex attributes (nothing of it in view)."""
         i = np.zeros(0, np.intp)
         f = np.zeros(0, np.float32)
-        return Fragments(i, f, f, f, i, i, np.zeros((1, 3, 0), np.float32))
+        return Fragments(i, f, f, f, i, i, np.zeros((4 + attrs, 3, 0), np.float32))
 
 
 def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -281,7 +282,7 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
         ok &= facing < 0
     ids = np.nonzero(ok)[0]
     if len(ids) == 0:
-        return Fragments.empty()
+        return Fragments.empty(mesh.attrs.shape[1])
     ids = ids[np.argsort(-qz[:, ids].sum(axis=0), kind="stable")]  # far to near
     # Grow each quad by half a pixel about its centre so that neighbours overlap instead of leaving
     # cracks; the overlap is resolved by the drawing order and the planes extrapolate exactly.
@@ -295,7 +296,7 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     lo = np.maximum(pts.min(axis=(0, 1)) >> _SHIFT, 0)
     hi = np.minimum((pts.max(axis=(0, 1)) >> _SHIFT) + 2, (camera.width, camera.height))
     if (hi <= lo).any():
-        return Fragments.empty()
+        return Fragments.empty(mesh.attrs.shape[1])
     qid = np.full((hi[1] - lo[1], hi[0] - lo[0]), -1, dtype=np.int32)
     pts -= (lo << _SHIFT).astype(np.int32)
     fill = cv2.fillConvexPoly

@@ -102,7 +102,7 @@ def object_rotation(orientation_deg: float) -> np.ndarray:
 
 @dataclass
 class StereoFrame:
-    left: np.ndarray         # (H, W, 3) uint8 RGB
+    left: np.ndarray         # (H, W, 3) uint8 BGR (OpenCV's order: written without conversion)
     right: np.ndarray
     depth_mm: np.ndarray     # (H, W) float32 left z-depth, 0 where nothing
     mask: np.ndarray         # (H, W) bool: tube visible in the left view
@@ -211,7 +211,7 @@ class SceneRenderer:
         color[:, bed_frag.flat] = tone_map(shade(bed_frag.position(cam), normal, albedo, gloss,
                                                  spec.bed_palette.shininess, light, vig[bed_frag.flat], glint=3.0))
         color[:, fix_frag.flat] = self._shade_materials(fix_frag, fixture, cam, light, vig[fix_frag.flat])
-        blurred = blur(cv2.merge(list(color.reshape(3, cam.height, cam.width))), spec.blur_sigma)
+        blurred = blur(cv2.merge(list(color.reshape(3, cam.height, cam.width)[::-1])), spec.blur_sigma)  # BGR
         return _StaticView(color, depth, vig, blurred)
 
     @staticmethod
@@ -315,7 +315,7 @@ class SceneRenderer:
             boxes = [f.box for f in (t_frag, i_frag) if len(f.flat)]
             box = (min(b[0] for b in boxes), min(b[1] for b in boxes), max(b[2] for b in boxes),
                    max(b[3] for b in boxes)) if boxes else (0, 0, 0, 0)
-            img = finish(color.reshape(3, cam.height, cam.width), self.noise.draw(self.rng), spec.blur_sigma,
+            img = finish(color.reshape(3, cam.height, cam.width)[::-1], self.noise.draw(self.rng), spec.blur_sigma,
                          static.blurred, box)
             images.append(img)
             if view == 0:

@@ -299,8 +299,8 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
         name = f"{i:06d}"
         mask = frame.mask.astype(np.uint8) * 255
         depth = np.clip(np.round(frame.depth_mm * 10.0), 0, 65535).astype(np.uint16)
-        writes = [(folder / "left" / (name + suffix), cv2.cvtColor(frame.left, cv2.COLOR_RGB2BGR), image_params),
-                  (folder / "right" / (name + suffix), cv2.cvtColor(frame.right, cv2.COLOR_RGB2BGR), image_params),
+        writes = [(folder / "left" / (name + suffix), frame.left, image_params),
+                  (folder / "right" / (name + suffix), frame.right, image_params),
                   (folder / "ground_truth/mask" / (name + ".png"), mask, _PNG_MASK),
                   (folder / "ground_truth/depth" / (name + ".png"), depth, _PNG_DEPTH)]
         # Encoding runs on a background thread (OpenCV releases the GIL), overlapping the next frame's
