@@ -558,7 +558,7 @@ def test_indexed_access_only_where_cheap(tmp_path):
 
 
 @pytest.mark.parametrize("ros2", [False, True])
-def test_image_heads_match_deserialisation(tmp_path, ros2):
+def test_image_heads_and_messages_match_deserialisation(tmp_path, ros2):
     bag = tmp_path / ("b" if ros2 else "b.bag")
     bag_with_every_shape(bag, ros2)
     with bags.open_bag(bag) as reader:
@@ -570,6 +570,15 @@ def test_image_heads_match_deserialisation(tmp_path, ros2):
                 assert head.stamp_ns == bags.header_stamp_ns(msg) and head.stamp_ns >= T0_NS
                 # cut before the last field it needs: no head, the caller deserialises the message
                 assert bag_index.image_head(raw[:head_length(raw, msgtype, ros2) - 1], msgtype, ros2) is None
+                # the whole message, its data a view into the serialised bytes
+                whole = bag_index.image_message(raw, msgtype, ros2)
+                assert whole.head == head and bytes(whole.data) == msg.data.tobytes()
+                if msgtype == bags.IMAGE:
+                    assert (whole.is_bigendian, whole.step) == (msg.is_bigendian, msg.step) == (0, 18)
+                from_rosbags = bags._image_message_of(msg)
+                assert (from_rosbags.head, bytes(from_rosbags.data), from_rosbags.step) == (
+                    whole.head, bytes(whole.data), whole.step)
+                assert bag_index.image_message(raw[:-4 if ros2 else -1], msgtype, ros2) is None  # data cut short
     assert bag_index.image_head(b"\x00\x00\x00\x00" + bytes(40), bags.IMAGE, ros2=True) is None  # big-endian CDR
 
 

@@ -83,10 +83,32 @@ class _Cursor:
         return (data[:-1] if self.cdr and data.endswith(b"\0") else data).decode("utf-8")
 
 
+@dataclass(frozen=True)
+class ImageMessage:
+    """A whole Image or CompressedImage message: its head, the pixel (or compressed) data as a view
+    into the serialised message, and for an Image its byte order and row length."""
+
+    head: ImageHead
+    data: memoryview
+    is_bigendian: int = 0
+    step: int = 0
+
+
 def image_head(buf: bytes | memoryview, msgtype: str, ros2: bool) -> ImageHead | None:
     """The leading fields of a serialised sensor_msgs Image or CompressedImage (ROS 1, or little-endian
     CDR for ROS 2) from its first bytes. None when they are not all in `buf`, the CDR payload is
     big-endian, or a string is not UTF-8: the caller then deserialises the whole message."""
+    return _read_image(buf, msgtype, ros2, whole=False)
+
+
+def image_message(buf: bytes | memoryview, msgtype: str, ros2: bool) -> ImageMessage | None:
+    """A whole serialised Image or CompressedImage, parsed without copying its data (what the encoding
+    threads need, cheaper than a general deserialiser); None as for `image_head`, or when the data
+    length runs past the message."""
+    return _read_image(buf, msgtype, ros2, whole=True)
+
+
+def _read_image(buf: bytes | memoryview, msgtype: str, ros2: bool, whole: bool):
     if ros2 and (len(buf) < 4 or buf[1] != 1):
         return None
     r = _Cursor(buf, cdr=ros2)
@@ -99,11 +121,20 @@ def image_head(buf: bytes | memoryview, msgtype: str, ros2: bool) -> ImageHead |
         stamp = sec * _NS + r.u32()
         r.string()  # frame_id
         if msgtype == COMPRESSED_IMAGE:
-            return ImageHead(stamp, r.string())
-        height, width = r.u32(), r.u32()
-        return ImageHead(stamp, r.string(), width, height)
+            head, layout = ImageHead(stamp, r.string()), {}
+        else:
+            height, width = r.u32(), r.u32()
+            head = ImageHead(stamp, r.string(), width, height)
+            if whole:
+                layout = {"is_bigendian": r.u8(), "step": r.u32()}
+        if not whole:
+            return head
+        length = r.u32()
     except (IndexError, UnicodeDecodeError):
         return None
+    if r.pos + length > len(buf):
+        return None
+    return ImageMessage(head, memoryview(buf)[r.pos:r.pos + length], **layout)
 
 
 # -- the indexed bags -------------------------------------------------------------------------------

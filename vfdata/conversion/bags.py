@@ -48,7 +48,14 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.bag_index import ImageHead, IndexedBag, image_head, open_indexed_bag
+from vfdata.conversion.bag_index import (
+    ImageHead,
+    ImageMessage,
+    IndexedBag,
+    image_head,
+    image_message,
+    open_indexed_bag,
+)
 from vfdata.conversion.ordered_map import ordered_map
 from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
 from vfdata.errors import InputError
@@ -528,6 +535,14 @@ def _head_of(msg) -> ImageHead:
     return ImageHead(header_stamp_ns(msg), msg.format)
 
 
+def _image_message_of(msg) -> ImageMessage:
+    """`bag_index.image_message` of a deserialised Image or CompressedImage message."""
+    data = memoryview(np.ascontiguousarray(msg.data, np.uint8)).cast("B")
+    if hasattr(msg, "encoding"):
+        return ImageMessage(_head_of(msg), data, int(msg.is_bigendian), int(msg.step))
+    return ImageMessage(_head_of(msg), data)
+
+
 def _scan_image(path: Path, stream: ImageStream, head: ImageHead, receive_ns: int, message: Callable[[], object],
                 ) -> None:
     """Record one image message of `stream`; `message()` gives the whole deserialised message, needed
@@ -991,17 +1006,18 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
 
     def encode_one(stream: ImageStream, k: int, raw: bytes | memoryview, frame: str) -> bytes:
         """One image as a CompressedImage CDR payload, built here in an encoding thread."""
-        # A memoryview: rosbags slices the CDR payload past its encapsulation header, a copy of the
-        # whole image for bytes, a view for a memoryview.
-        msg = _deserialize(reader, scan.path, memoryview(raw), connection_of[stream.topic])
+        msg = image_message(raw, stream.msgtype, reader.is2)
+        if msg is None:  # e.g. big-endian CDR: rosbags' deserialiser
+            msg = _image_message_of(_deserialize(reader, scan.path, raw, connection_of[stream.topic]))
+        encoding = msg.head.encoding
         try:
             if stream.msgtype == COMPRESSED_IMAGE:
-                image = compressed_to_bgr(msg.format, msg.data)
+                image = compressed_to_bgr(encoding, msg.data)
                 # A JPEG kept as JPEG is copied, not re-encoded: no second generation of losses.
-                passthrough = compressed_format(msg.format) == "jpeg" == options.image_format
+                passthrough = compressed_format(encoding) == "jpeg" == options.image_format
             else:
-                image = raw_image_to_bgr(int(msg.height), int(msg.width), msg.encoding, int(msg.is_bigendian),
-                                         int(msg.step), msg.data)
+                image = raw_image_to_bgr(msg.head.height, msg.head.width, encoding, msg.is_bigendian, msg.step,
+                                         msg.data)
                 passthrough = False
         except UnsupportedImage as exc:
             raise InputError(scan.path, f"{stream.topic}: frame {k}: {exc}") from None
