@@ -11,7 +11,11 @@ started from the previous frame's network and optimiser state, on
 
 Chamfer is the mean squared distance (mm^2) of each visible point to its nearest cloud point; the
 nearest point comes from a KD-tree built once per frame and is re-queried every iteration as the
-points move, the distances themselves are computed in torch against the gathered cloud points.
+points move. Every term's gradient with respect to the points is written out (vfdata/tracking/losses.py;
+the two LLR terms, quadratic in the points, are one (n, n) matrix product) and back-propagated through
+the SIREN by hand (vfdata/tracking/siren.py), with Adam on one flat parameter tensor
+(vfdata/tracking/adam.py): for a network this small autograd's bookkeeping cost more than the
+arithmetic. The gradients are tested against autograd.
 
 `mode="geometry+"` (beyond the paper) adds a term for motion *along* the surface, which Chamfer and
 LLR hardly see: the pyramidal Lucas-Kanade flow of each visible point's projection from the previous
@@ -23,11 +27,14 @@ pulls the projection there; the Chamfer term keeps the point on the surface, whi
 target onto it. Flows that fail the forward-backward check, start outside the previous mask or end
 outside the current one are left out, so specular highlights and the instrument do not drag points.
 
+`geometry+` also matches each point's patch of the reference image, starting from the flow target, and
+takes that match where it agrees with the flow within `reference_match_px`: frame-to-frame flow drifts
+over hundreds of frames, the reference match does not.
+
 Defaults (k, lambdas, iterations, learning rate, network size) were chosen by measurement on the
-simulator; see docs/tracking.md. One update (10 Adam steps) costs about 40 ms for 256 points and a
-20,000-point cloud on an idle CPU thread: a 3.7 ms KD-tree build, then per step ~1.5 ms of SIREN
-forward, backward and Adam plus a 0.2 ms query. torch.set_num_threads(1) is the caller's choice; one
-thread per process and one process per recording is fastest.
+simulator's `colon` test recordings; see docs/tracking.md, which also has the speed figures.
+torch.set_num_threads(1) is the caller's choice; one thread per process and one process per
+recording is fastest.
 """
 
 from __future__ import annotations
@@ -59,8 +66,8 @@ class TrackerOptions:
     mode: str = "geometry"
     neighbours: int = 8  # k of the LLR terms
     lambda_chamfer: float = 1.0
-    lambda_ref: float = 1.0
-    lambda_prev: float = 1.0
+    lambda_ref: float = 30.0
+    lambda_prev: float = 30.0
     lambda_flow: float = 10.0  # geometry+ only
     iterations: int = 10  # Adam steps per frame
     learning_rate: float = 1e-3
@@ -70,12 +77,12 @@ class TrackerOptions:
     output_scale_mm: float = 10.0  # SIREN output unit, in mm of displacement
     input_extent: float = 0.3  # reference positions are scaled into [-input_extent, input_extent]
     llr_regularization: float = 1e-3
-    llr_relative: bool = True
-    visibility_every_iteration: bool = True  # measure LLR residuals from their value on the frame the weights come from
+    llr_relative: bool = True  # measure LLR residuals from their value on the frame the weights come from
+    visibility_every_iteration: bool = True  # recompute which points are visible at every step
     flow_max_forward_backward_px: float = 1.0
     # geometry+: also match each point's reference-image patch, to undo the drift of frame-to-frame flow
     # (see vfdata.tracking.flow.refine_from_reference); 0 turns it off.
-    reference_match_px: float = 2.0
+    reference_match_px: float = 5.0
     reference_image: np.ndarray | None = None  # geometry+: the left image of the reference frame
 
 
