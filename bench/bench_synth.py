@@ -27,7 +27,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
-import numpy as np  # noqa: E402
 
 from vfdata.sim.presets import get_preset  # noqa: E402
 from vfdata.sim.scene import SceneRenderer  # noqa: E402
@@ -37,6 +36,7 @@ from vfdata.sim.synthesize import (  # noqa: E402
     IMAGE_FORMATS,
     N_MATERIAL_POINTS,
     build_recording,
+    ground_truth_images,
     point_visibility,
     simulate,
     synthesize,
@@ -67,8 +67,9 @@ def breakdown(preset: str, frames: int, image_format: str) -> dict[str, float]:
         cv2.imencode(suffix, f.left, params)
         cv2.imencode(suffix, f.right, params)
         t2 = time.process_time()
-        cv2.imencode(".png", f.mask.astype(np.uint8) * 255, _PNG_MASK)
-        cv2.imencode(".png", np.clip(np.round(f.depth_mm * 10.0), 0, 65535).astype(np.uint16), _PNG_DEPTH)
+        mask, depth = ground_truth_images(f.mask, f.depth_mm)
+        cv2.imencode(".png", mask, _PNG_MASK)
+        cv2.imencode(".png", depth, _PNG_DEPTH)
         t3 = time.process_time()
         p, n = point_map.evaluate_scattered(rec.model.nodes)
         point_visibility(rec.spec.cam.camera, p @ r_co.T + t_co, n @ r_co.T, f.depth_mm, f.mask)

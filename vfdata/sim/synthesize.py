@@ -247,6 +247,14 @@ def _encode(path: Path, image: np.ndarray, params: list[int]) -> None:
     path.write_bytes(buf.tobytes())
 
 
+def ground_truth_images(mask: np.ndarray, depth_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mask as uint8 0/255 and the depth (>= 0 mm) as uint16 in 0.1 mm, rounded half up."""
+    depth = depth_mm * np.float32(10.0)
+    depth += np.float32(0.5)
+    np.minimum(depth, np.float32(65535.0), out=depth)
+    return mask.view(np.uint8) * np.uint8(255), depth.astype(np.uint16)
+
+
 def _quaternion(r: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
     w = np.sqrt(max(0.0, 1 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
@@ -297,8 +305,7 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
         nodes = rec.model.nodes
         frame = renderer.render(nodes, grasp_o, twist, jaw)
         name = f"{i:06d}"
-        mask = frame.mask.astype(np.uint8) * 255
-        depth = np.clip(np.round(frame.depth_mm * 10.0), 0, 65535).astype(np.uint16)
+        mask, depth = ground_truth_images(frame.mask, frame.depth_mm)
         writes = [(folder / "left" / (name + suffix), frame.left, image_params),
                   (folder / "right" / (name + suffix), frame.right, image_params),
                   (folder / "ground_truth/mask" / (name + ".png"), mask, _PNG_MASK),
