@@ -328,22 +328,20 @@ def _ros1_refs(buffer: mmap.mmap, data: np.ndarray, chunks: tuple[np.ndarray, np
     if None in layout.values() or [v[1] for v in layout.values()] != [1, 4, 8]:
         return None
     header_len = _U32.unpack_from(buffer, int(record[0]))[0]
-    values = np.zeros(header_len, bool)
     first = int(record[0]) + 4
-    for name in (b"conn", b"time"):
-        at, size = layout[name]
-        values[at - first:at - first + size] = True
+    template = data[first:first + header_len]
+    op_at, conn_at, time_at = (layout[name][0] - first for name in (b"op", b"conn", b"time"))
+    fixed = np.ones(header_len, bool)  # the header bytes every record shares: all but conn and time
+    fixed[conn_at:conn_at + 4] = fixed[time_at:time_at + 8] = False
     for start in range(0, len(record), BLOCK):
         block = slice(start, start + BLOCK)
         rec = record[block]
         if (rec + 8 + header_len > chunk_end[which[block]]).any() or (_u32_at(data, rec) != header_len).any():
             return None
         headers = _gather(data, rec + 4, header_len)
-        template = data[first:first + header_len]
-        op_at, conn_at, time_at = (layout[n][0] - first for n in (b"op", b"conn", b"time"))
         sec = headers[:, time_at:time_at + 4].copy().view("<u4").ravel().astype(np.int64)
         nsec = headers[:, time_at + 4:time_at + 8].copy().view("<u4").ravel().astype(np.int64)
-        if not ((headers[:, ~values] == template[~values]).all() and (headers[:, op_at] == _OP_MSG_DATA).all()
+        if not ((headers[:, fixed] == template[fixed]).all() and (headers[:, op_at] == _OP_MSG_DATA).all()
                 and (headers[:, conn_at:conn_at + 4].copy().view("<u4").ravel() == conn[block]).all()
                 and (sec * _NS + nsec == receive[block]).all()):
             return None

@@ -951,12 +951,15 @@ def _warn_about(scan: BagScan, plan: PairPlan) -> None:
 
 
 def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan,
-                     ) -> Iterator[tuple[int, bytes | memoryview, bytes | memoryview]]:
-    """(k, left message, right message), serialised, for every pair of the plan, in pair order."""
+                     ) -> Iterator[tuple[int, Callable[[], bytes | memoryview], Callable[[], bytes | memoryview]]]:
+    """(k, left message, right message) for every pair of the plan, in pair order, each message as a
+    function that returns it serialised: with random access, it is fetched when called, in the
+    encoding thread that encodes it (a ROS 2 image is copied out of sqlite there, where the encoder
+    then finds it in its core's cache)."""
     if scan.indexed is not None:
         indexed, left, right = scan.indexed, scan.left.topic, scan.right.topic
         for k, (i, j) in enumerate(zip(plan.left_index.tolist(), plan.right_index.tolist(), strict=True)):
-            yield k, indexed.message(left, i), indexed.message(right, j)
+            yield k, partial(indexed.message, left, i), partial(indexed.message, right, j)
         return
     # Streaming the bag: a message is found by its acquisition stamp; one waits in memory only until
     # its partner (and the pairs before it) have been read, a frame or two in a normal bag.
@@ -975,10 +978,14 @@ def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan,
         slot[side] = raw
         while next_k in pending and None not in pending[next_k]:
             left, right = pending.pop(next_k)
-            yield next_k, left, right
+            yield next_k, partial(_same, left), partial(_same, right)
             next_k += 1
     if next_k != len(plan.stamps_ns):
         raise InputError(scan.path, f"pair {next_k} went missing on the second pass (was the bag modified?)")
+
+
+def _same(value):
+    return value
 
 
 def restamped(payload: bytes, stamp_ns: int) -> bytes:
@@ -1004,8 +1011,9 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
     size = (scan.left.height, scan.left.width)
     connection_of = {c.topic: c for c in reader.connections}
 
-    def encode_one(stream: ImageStream, k: int, raw: bytes | memoryview, frame: str) -> bytes:
+    def encode_one(stream: ImageStream, k: int, fetch: Callable[[], bytes | memoryview], frame: str) -> bytes:
         """One image as a CompressedImage CDR payload, built here in an encoding thread."""
+        raw = fetch()
         msg = image_message(raw, stream.msgtype, reader.is2)
         if msg is None:  # e.g. big-endian CDR: rosbags' deserialiser
             msg = _image_message_of(_deserialize(reader, scan.path, raw, connection_of[stream.topic]))
