@@ -122,7 +122,8 @@ class GeometryTracker:
         self._points = self.reference.copy()
         self._reference_uv = None if camera is None else camera.project(self.reference)
 
-        # The SIREN sees reference positions scaled into [-1, 1], where omega_0 = 30 is meant to work.
+        # The SIREN sees reference positions scaled into [-input_extent, input_extent]: omega_0 = 30 is meant
+        # for [-1, 1], and a smaller range starts the field smoother (see docs/tracking.md).
         center = 0.5 * (self.reference.min(axis=0) + self.reference.max(axis=0))
         half_extent = max(float(np.abs(self.reference - center).max()), 1e-6)
         generator = torch.Generator().manual_seed(seed)
