@@ -26,8 +26,9 @@ def load_sim_frames(rec: Path, frames: int) -> dict:
     """Images (BGR), ground-truth masks (bool) and depths (mm, NaN = none) and the prompt box."""
     out = {"left": [], "right": [], "mask": [], "depth": []}
     for i in range(frames):
-        out["left"].append(cv2.imread(str(rec / "left" / f"{i:06d}.png")))
-        out["right"].append(cv2.imread(str(rec / "right" / f"{i:06d}.png")))
+        for side in ("left", "right"):
+            (path,) = (rec / side).glob(f"{i:06d}.*")  # JPEG by default, PNG with --image-format png
+            out[side].append(cv2.imread(str(path)))
         out["mask"].append(cv2.imread(str(rec / "ground_truth" / "mask" / f"{i:06d}.png"), 0) > 0)
         depth = cv2.imread(str(rec / "ground_truth" / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
         depth = depth.astype(np.float32) / 10.0
