@@ -43,22 +43,40 @@ def _load_state_dict(path: str | Path, what: str) -> dict[str, torch.Tensor]:
     return state
 
 
+NORMS = ("group", "frozen", "batch")
+
+
 class RGBResNet3D(nn.Module):
-    """RGB clips (B, T, 3, H, W), uint8 0-255 or float 0-1 -> forces (B, T, 3).
+    """RGB clips (B, T, 3, H, W), values 0-255 (uint8, or float as `ForceRegressor` passes them on)
+    -> forces (B, T, 3).
 
     r3d_18's stem and four stages give features at T/8 time steps; they are averaged over space,
     interpolated back to the T frames and passed to one head per force component. 3D convolutions
     see both neighbours in time, so unlike the proposed model this baseline is not causal.
+
+    `norm` sets what r3d_18's BatchNorm layers become (docs/models.md, "Baselines"):
+    - "group": GroupNorm (32 groups), the same computation in training and evaluation, residual
+      branches starting at zero; the default without pretrained weights.
+    - "frozen": BatchNorm that always uses its stored statistics (the pretrained weights'; their
+      scale and shift still train); the default with `weights_path`.
+    - "batch": torchvision's BatchNorm, batch statistics in training and running averages in
+      evaluation. Those averages trail the weights by ~10 optimiser steps (momentum 0.1), so an
+      evaluation after a few hundred steps can be off by orders of magnitude.
     """
 
     input_key = "images"
     channel_dim = 2
 
-    def __init__(self, weights_path: str | None = None, head_hidden: int = 64):
+    def __init__(self, weights_path: str | None = None, head_hidden: int = 64, norm: str | None = None):
         super().__init__()
         from torchvision.models.video import r3d_18
 
-        self.config = dict(weights_path=weights_path, head_hidden=head_hidden)
+        norm = norm or ("frozen" if weights_path else "group")
+        if norm not in NORMS:
+            raise ValueError(f"norm '{norm}' is not one of {', '.join(NORMS)}")
+        # the resolved norm is stored, so that a checkpoint rebuilds the same layers without the weights file
+        self.config = dict(weights_path=weights_path, head_hidden=head_hidden, norm=norm)
+        self.norm = norm
         backbone = r3d_18(weights=None)
         if weights_path:
             state = {k: v for k, v in _load_state_dict(weights_path, "r3d_18").items() if not k.startswith("fc.")}
@@ -68,21 +86,47 @@ class RGBResNet3D(nn.Module):
                 raise BackendError(
                     f"{weights_path}: not r3d_18 weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
                 )
+        if norm == "group":
+            _batch_to_group_norm(backbone)
+            # Each residual branch starts at zero (its last norm's scale = 0, Goyal et al. 2017), so the
+            # untrained network is the stem and the shortcuts. Without it, GroupNorm's per-clip
+            # normalisation leaves pooled features that differ between clips by ~1-9% of their size,
+            # and a tiny overfit barely moved in 40 steps (loss 1.04 -> 0.97; with it 1.01 -> 0.03).
+            for stage in (backbone.layer1, backbone.layer2, backbone.layer3, backbone.layer4):
+                for block in stage:
+                    nn.init.zeros_(block.conv2[1].weight)
         self.initialisation = f"pretrained:{weights_path}" if weights_path else "random"
         self.features = nn.Sequential(
             backbone.stem, backbone.layer1, backbone.layer2, backbone.layer3, backbone.layer4
         )
         self.heads = ForceHeads(512, head_hidden)
-        self.register_buffer("mean", torch.tensor(KINETICS_MEAN).view(1, 3, 1, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(KINETICS_STD).view(1, 3, 1, 1, 1), persistent=False)
+        # Kinetics statistics on the 0-255 scale: the clips arrive as 0-255 whatever their dtype
+        self.register_buffer("mean", 255 * torch.tensor(KINETICS_MEAN).view(1, 3, 1, 1, 1), persistent=False)
+        self.register_buffer("std", 255 * torch.tensor(KINETICS_STD).view(1, 3, 1, 1, 1), persistent=False)
+
+    def train(self, mode: bool = True) -> RGBResNet3D:
+        super().train(mode)
+        if self.norm == "frozen":
+            for module in self.modules():
+                if isinstance(module, nn.BatchNorm3d):
+                    module.eval()
+        return self
 
     def forward(self, images: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
         t = images.shape[1]
-        x = images.float() / 255.0 if images.dtype == torch.uint8 else images
-        x = (x.transpose(1, 2) - self.mean) / self.std  # (B, 3, T, H, W)
+        x = (images.float().transpose(1, 2) - self.mean) / self.std  # (B, 3, T, H, W)
         f = self.features(x).mean(dim=(3, 4))  # (B, 512, T')
         f = F.interpolate(f, size=t, mode="linear", align_corners=False)
         return self.heads(f.transpose(1, 2))
+
+
+def _batch_to_group_norm(module: nn.Module, groups: int = 32) -> None:
+    """Replace every BatchNorm3d under `module` by a GroupNorm over the same channels (in place)."""
+    for name, child in module.named_children():
+        if isinstance(child, nn.BatchNorm3d):
+            setattr(module, name, nn.GroupNorm(min(groups, child.num_features), child.num_features))
+        else:
+            _batch_to_group_norm(child, groups)
 
 
 class DepthViTLSTM(nn.Module):
