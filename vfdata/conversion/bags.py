@@ -71,7 +71,7 @@ from vfdata.recording.messages import (
     decode_pose_batch,
     decode_wrench_batch,
 )
-from vfdata.recording.writer import McapWriter
+from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 
 log = logging.getLogger(__name__)
 
@@ -1049,7 +1049,8 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         transform.stamp_ns = first
     # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
     info_payloads = ((layout.LEFT_INFO, info_l.encode()), (layout.RIGHT_INFO, info_r.encode()))
-    with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer, \
+    with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE),
+                     chunk_level=IMAGE_LEVEL) as writer, \
             ThreadPoolExecutor(max(1, options.workers)) as pool:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
         writer.write(layout.TF_STATIC, tf)

@@ -33,7 +33,7 @@ from vfdata.recording.messages import (
     WrenchStamped,
 )
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
-from vfdata.recording.writer import CHUNK_SIZE, McapWriter
+from vfdata.recording.writer import CHUNK_SIZE, IMAGE_LEVEL, McapWriter
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
@@ -411,7 +411,8 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     pose_i = 0
     info_l, info_r = camera_infos(calib, int(frame_ns[0]))
     with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
-                     separate_topics=(layout.WRENCH, layout.ECM_POSE)) as writer:
+                     separate_topics=(layout.WRENCH, layout.ECM_POSE),
+                     chunk_level=IMAGE_LEVEL) as writer:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
         writer.write(layout.TF_STATIC, stereo_tf(calib, int(frame_ns[0])))
         with ThreadPoolExecutor(max(1, options.workers)) as pool:

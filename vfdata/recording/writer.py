@@ -5,9 +5,10 @@ schemas, zstd chunks with message indexes and CRCs, and a summary (with its CRC)
 channels, statistics, chunk and metadata indexes and summary offsets. Writing the records ourselves
 (instead of through `mcap.writer.Writer`) buys two things the converters need:
 
-- per-chunk zstd levels: chunks of JPEG/PNG images do not compress (ratio 1.00003), so they are
-  compressed at zstd's fastest level, which costs 0.1 ms per stereo frame instead of 2 ms at the
-  default level; the small high-rate series (force, pose), which do compress, use level 3;
+- per-chunk compression: chunks of JPEG/PNG images do not compress (ratio 1.00003), so the
+  converters store them uncompressed (`IMAGE_LEVEL`; zstd's default level cost 2 ms per stereo
+  frame and its fastest level still 0.15 ms, on writing and again on every read); the small
+  high-rate series (force, pose), which do compress, use zstd level 3;
 - small high-rate topics gathered into chunks of their own (`separate_topics`), so a reader gets a
   1 kHz force series without decompressing the video.
 
@@ -52,7 +53,8 @@ OP_SUMMARY_OFFSET = 0x0E
 # Large enough that a stereo JPEG pair and a few hundred force samples share a chunk; small enough
 # that reading one frame decompresses little.
 CHUNK_SIZE = 4 * 1024 * 1024
-FAST_LEVEL = -1  # zstd "fast" level: for chunks of already-compressed images
+FAST_LEVEL = -1  # zstd "fast" level: the default of mixed chunks (derived files: clouds, masks, depth)
+IMAGE_LEVEL = None  # no compression: for chunks of already-compressed images (the converters)
 SERIES_LEVEL = 3  # zstd default: for the separated small-message series
 
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")  # opcode, length, channel, sequence, log time, publish time
@@ -75,8 +77,10 @@ def _record(opcode: int, body: bytes) -> bytes:
 class _Chunk:
     """Messages gathered for one chunk, with their per-channel message index."""
 
-    def __init__(self, level: int):
-        self.compressor = zstandard.ZstdCompressor(level=level)
+    def __init__(self, level: int | None):
+        """`level`: zstd level, or None to store the chunk uncompressed."""
+        self.compressor = None if level is None else zstandard.ZstdCompressor(level=level)
+        self.compression = "" if level is None else "zstd"
         self.reset()
 
     def reset(self) -> None:
@@ -119,10 +123,10 @@ class McapWriter:
 
     def __init__(self, path: str | Path, overwrite: bool = False, chunk_size: int = CHUNK_SIZE,
                  separate_topics: tuple[str, ...] = (), separate_batch: int = 2048,
-                 chunk_level: int = FAST_LEVEL, series_level: int = SERIES_LEVEL):
+                 chunk_level: int | None = FAST_LEVEL, series_level: int | None = SERIES_LEVEL):
         """`separate_topics`: small high-rate topics (force, pose) whose messages are gathered into
         chunks of their own, `separate_batch` messages at a time. `chunk_level` / `series_level`:
-        zstd levels of the mixed chunks and of the separated series' chunks."""
+        zstd levels of the mixed chunks and of the separated series' chunks (None: uncompressed)."""
         self.path = Path(path)
         self._atomic = atomic_output(self.path, overwrite)
         self._tmp = self._atomic.__enter__()
@@ -230,10 +234,10 @@ class McapWriter:
         if not chunk.index:
             return
         records = chunk.records
-        compressed = chunk.compressor.compress(records)
+        compressed = records if chunk.compressor is None else chunk.compressor.compress(records)
         start_offset = self._offset
         body = (struct.pack("<QQQI", chunk.start, chunk.end, len(records), zlib.crc32(records))
-                + _string("zstd") + struct.pack("<Q", len(compressed)))
+                + _string(chunk.compression) + struct.pack("<Q", len(compressed)))
         self._emit(struct.pack("<BQ", OP_CHUNK, len(body) + len(compressed)) + body)
         self._emit(compressed)
         chunk_length = self._offset - start_offset
@@ -246,7 +250,7 @@ class McapWriter:
         offset_map = b"".join(struct.pack("<HQ", c, o) for c, o in offsets.items())
         self._chunk_indexes.append(_record(OP_CHUNK_INDEX, struct.pack(
             "<QQQQ", chunk.start, chunk.end, start_offset, chunk_length) + struct.pack("<I", len(offset_map))
-            + offset_map + struct.pack("<Q", self._offset - index_start) + _string("zstd")
+            + offset_map + struct.pack("<Q", self._offset - index_start) + _string(chunk.compression)
             + struct.pack("<QQ", len(compressed), len(records))))
         self._time_range += [chunk.start, chunk.end]
         chunk.reset()
