@@ -113,8 +113,8 @@ def test_rgb_backbone_sees_normalised_input_through_the_regressor():
 
 
 def test_rgb_eval_mode_stays_sane_after_a_few_steps():
-    """After a few optimiser steps the evaluation-mode forces stay of the order of the targets (with
-    0-255 inputs and torchvision's BatchNorm they were thousands of N) and the loss has not grown."""
+    """Before and after a few optimiser steps the evaluation-mode loss is of order 1 and the forces of
+    the order of the targets (with 0-255 inputs and torchvision's BatchNorm they were thousands of N)."""
     torch.manual_seed(0)
     batch = make_image_clips(clips=2, size=16)
     regressor = regressor_for(RGBResNet3D(), batch)
@@ -123,7 +123,8 @@ def test_rgb_eval_mode_stays_sane_after_a_few_steps():
     after, pred_n = eval_loss(regressor, batch)
     assert torch.isfinite(pred_n).all()
     assert pred_n.abs().max() < 3 * batch["force"].abs().max()
-    assert after < 1.5 * before, (before, after)
+    # normalised losses of order 1 (predicting the mean gives 1); the old model started at 87
+    assert before < 2 and after < 2, (before, after)
 
 
 @pytest.mark.slow  # ~35 s of CPU: r3d_18's 3D convolutions are slow backwards on CPU even at 16 px
