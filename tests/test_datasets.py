@@ -246,3 +246,16 @@ def test_ground_truth_source(tmp_path):
     np.testing.assert_allclose(item["force"].numpy(), np.tile([1.0, 2.0, 3.0], (16, 1)))
     cloud = ForceClipDataset(entries, source="ground_truth", input="cloud", cloud_points=50, progress=False)[0]
     assert cloud["tokens"].shape == (16, 50, 3) and cloud["valid"].all()
+
+
+def test_rgb_clips_need_only_the_recording(tmp_path):
+    from rawfixtures import make_raw
+
+    from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+
+    convert_raw_folder(make_raw(tmp_path / "raw", n=20), tmp_path / "a.mcap", options=ConvertOptions(progress=False))
+    manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}])  # no a.processed.mcap
+    _, entries = load_manifest(manifest)
+    clips = ForceClipDataset(entries, input="rgb", image_size=32, clip_frames=8, progress=False)
+    clip = clips[0]
+    assert clip["images"].shape == (8, 3, 32, 32) and clip["force"].shape == (8, 3)

@@ -231,6 +231,8 @@ def _decode_processed(entry: ManifestEntry, opts: dict) -> Decoded:
 
     from vfdata.recording import Recording, layout
 
+    if opts["input"] == "rgb":
+        return _decode_rgb(entry, opts)
     path = entry.processed
     if not path.is_file():
         raise InputError(path, f"processed recording '{entry.id}' not found "
@@ -289,9 +291,18 @@ def _decode_processed(entry: ManifestEntry, opts: dict) -> Decoded:
                 times.append(stamp)
             times_ns = np.asarray(times, dtype=np.int64)
             return Decoded(times_ns, _force_at(entry, times_ns), np.asarray(frames, np.float16), None)
-    # rgb: the left images of the recording MCAP
+    raise ValueError(f"unknown input kind {kind!r}")
+
+
+def _decode_rgb(entry: ManifestEntry, opts: dict) -> Decoded:
+    """The left images of the recording MCAP itself (the RGB baseline needs no processing)."""
+    import cv2
+
+    from vfdata.recording import Recording
+
     if not entry.mcap.is_file():
         raise InputError(entry.mcap, f"recording '{entry.id}' not found (convert it with `vfdata convert`)")
+    size = opts["image_size"]
     with Recording.open(entry.mcap) as rec:
         times_ns = np.asarray(rec.frame_times_ns, dtype=np.int64)
         images = np.empty((len(times_ns), 3, size, size), np.uint8)
