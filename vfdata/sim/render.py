@@ -184,22 +184,22 @@ def box_mesh(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, material: f
 @dataclass
 class Fragments:
     """Per-pixel samples of one layer: flat pixel indices (P,), depth (P,) mm, pixel coordinates, the
-    covering triangle and quad, and, once `interpolate` ran, the mesh's normals then vertex attributes
-    (3 + A, P) float32, perspective-correct."""
+    covering triangle (triangles 2 k and 2 k + 1 are the halves of mesh quad drawn[k]), and, once
+    `interpolate` ran, the mesh's normals then vertex attributes (3 + A, P) float32, perspective-correct."""
 
     flat: np.ndarray
     depth: np.ndarray
     px: np.ndarray
     py: np.ndarray
     tri: np.ndarray          # (P,) index of the covering triangle among the drawn ones
-    quad: np.ndarray         # (P,) index of the covering quad in the mesh
+    drawn: np.ndarray        # (D,) mesh index of each drawn quad
     coef: np.ndarray         # (C, 3, T) screen-plane coefficients of 1/z and channel/z per triangle
     box: tuple[int, int, int, int] = (0, 0, 0, 0)  # x0, y0, x1, y1 (exclusive) holding every fragment
     values: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> Fragments:
         return Fragments(self.flat[keep], self.depth[keep], self.px[keep], self.py[keep], self.tri[keep],
-                         self.quad[keep], self.coef, self.box, None if self.values is None else self.values[:, keep])
+                         self.drawn, self.coef, self.box, None if self.values is None else self.values[:, keep])
 
     def interpolate(self) -> Fragments:
         # One 1-D gather per coefficient: much faster than a gather along the last axis of coef.
@@ -217,7 +217,7 @@ class Fragments:
 
     def face(self, face_attrs: np.ndarray) -> np.ndarray:
         """(F, P) per-quad attributes (Q, F) of the covering quads."""
-        return face_attrs.T.take(self.quad, axis=1)
+        return face_attrs.take(self.drawn, axis=0).T.take(self.tri >> 1, axis=1)
 
     @property
     def normal(self) -> np.ndarray:
@@ -350,7 +350,7 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     inv_depth += b0.take(tri) * py
     inv_depth += c0.take(tri)
     depth = 1.0 / np.maximum(inv_depth, np.float32(1e-9))
-    return Fragments(flat, depth, px, py, tri, ids.take(rank), coef, (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])))
+    return Fragments(flat, depth, px, py, tri, ids, coef, (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])))
 
 
 
@@ -690,10 +690,11 @@ def finish(planes: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma:
     holding every pixel that differs from it), only the box and its surroundings are blurred again:
     the result is the same as blurring the whole image."""
     h, w = planes.shape[1:]
+    positive, negative = noise
     if blurred_static is None or box is None:
-        img = blur(cv2.merge(list(planes)), blur_sigma)
+        img = cv2.add(blur(cv2.merge(list(planes)), blur_sigma), positive)
     else:
-        img = blurred_static.copy()
+        img = cv2.add(blurred_static, positive)  # a new image, the static one unchanged
         r = _BLUR_RADIUS
         # Output pixels within r of the box change; blurring them needs r more pixels around.
         x0, y0 = max(box[0] - r, 0), max(box[1] - r, 0)
@@ -701,5 +702,5 @@ def finish(planes: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma:
         if x1 > x0 and y1 > y0:
             cx0, cy0, cx1, cy1 = max(x0 - r, 0), max(y0 - r, 0), min(x1 + r, w), min(y1 + r, h)
             crop = blur(cv2.merge(list(planes[:, cy0:cy1, cx0:cx1])), blur_sigma)
-            img[y0:y1, x0:x1] = crop[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0]
-    return cv2.subtract(cv2.add(img, noise[0]), noise[1])
+            img[y0:y1, x0:x1] = cv2.add(crop[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0], positive[y0:y1, x0:x1])
+    return cv2.subtract(img, negative, dst=img)

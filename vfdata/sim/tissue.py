@@ -127,12 +127,12 @@ class SurfaceMap:
         (S, 3) of those samples."""
         R, C, _ = nodes.shape
         flat = nodes.reshape(R, C * 3)
-        a = (self.ws @ flat).reshape(-1, C, 3)  # a matrix product: much faster than the einsum
+        a = (self.ws @ flat).reshape(-1, C, 3)  # matrix products: much faster than einsums
         da = (self.dws @ flat).reshape(-1, C, 3)
-        p = np.einsum("nc,ncx->nx", self.wt, a)
-        ps = np.einsum("nc,ncx->nx", self.wt, da)
-        pt = np.einsum("nc,ncx->nx", self.dwt, a)
-        return p, outward_normals(ps, pt)
+        # Per sample, (1 or 2, C) @ (C, 3): positions and d/dtheta together, then d/ds.
+        p_pt = np.stack([self.wt, self.dwt], axis=1) @ a
+        ps = (self.wt[:, None, :] @ da)[:, 0]
+        return p_pt[:, 0], outward_normals(ps, p_pt[:, 1])
 
 
 def outward_normals(d_ds: np.ndarray, d_dtheta: np.ndarray) -> np.ndarray:
