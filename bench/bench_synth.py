@@ -28,10 +28,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import cv2  # noqa: E402
 
+from vfdata.sim.png import encode_png16  # noqa: E402
 from vfdata.sim.presets import get_preset  # noqa: E402
 from vfdata.sim.scene import SceneRenderer  # noqa: E402
 from vfdata.sim.synthesize import (  # noqa: E402
-    _PNG_DEPTH,
     _PNG_MASK,
     IMAGE_FORMATS,
     N_MATERIAL_POINTS,
@@ -69,7 +69,7 @@ def breakdown(preset: str, frames: int, image_format: str) -> dict[str, float]:
         t2 = time.process_time()
         mask, depth = ground_truth_images(f.mask, f.depth_mm)
         cv2.imencode(".png", mask, _PNG_MASK)
-        cv2.imencode(".png", depth, _PNG_DEPTH)
+        encode_png16(depth)
         t3 = time.process_time()
         p, n = point_map.evaluate_scattered(rec.model.nodes)
         point_visibility(rec.spec.cam.camera, p @ r_co.T + t_co, n @ r_co.T, f.depth_mm, f.mask)

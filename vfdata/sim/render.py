@@ -532,12 +532,13 @@ def _dot_const(c: np.ndarray, a: np.ndarray) -> np.ndarray | np.float32:
 
 
 def _exp(x: np.ndarray) -> np.ndarray:
-    # OpenCV's vectorised float32 exp / log run about three times faster than numpy's here.
-    return cv2.exp(x).reshape(x.shape)
+    # OpenCV's vectorised float32 exp / log run about three times faster than numpy's here (OpenCV
+    # returns None for an empty array).
+    return cv2.exp(x).reshape(x.shape) if x.size else x.copy()
 
 
 def _log(x: np.ndarray) -> np.ndarray:
-    return cv2.log(x).reshape(x.shape)
+    return cv2.log(x).reshape(x.shape) if x.size else x.copy()
 
 
 def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
