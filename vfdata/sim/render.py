@@ -344,7 +344,8 @@ def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) ->
     with np.errstate(invalid="ignore"):
         coef = _plane_coefficients(uv[:, 0].take(corners), uv[:, 1].take(corners),
                                    chans[:, corners].transpose(1, 0, 2))
-    coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
+    if not np.isfinite(coef).all():  # (one pass; nan_to_num alone makes several)
+        coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
     a0, b0, c0 = coef[0]
     inv_depth = a0.take(tri) * px
     inv_depth += b0.take(tri) * py

@@ -114,6 +114,7 @@ class _StaticView:
     depth: np.ndarray        # (H*W,) float32 mm, inf where nothing
     vignette: np.ndarray     # (H*W,) float32
     blurred: np.ndarray      # (H, W, 3) uint8: the colour, optically blurred
+    empty: np.ndarray        # flat indices of the pixels where the static layer has nothing (depth inf)
 
 
 @dataclass
@@ -212,7 +213,7 @@ class SceneRenderer:
                                                  spec.bed_palette.shininess, light, vig[bed_frag.flat], glint=3.0))
         color[:, fix_frag.flat] = self._shade_materials(fix_frag, fixture, cam, light, vig[fix_frag.flat])
         blurred = blur(cv2.merge(list(color.reshape(3, cam.height, cam.width)[::-1])), spec.blur_sigma)  # BGR
-        return _StaticView(color, depth, vig, blurred)
+        return _StaticView(color, depth, vig, blurred, np.flatnonzero(np.isinf(depth)))
 
     @staticmethod
     def _shade_materials(frag: Fragments, mesh: Mesh, cam: PinholeCamera, light: Light,
@@ -319,7 +320,9 @@ class SceneRenderer:
                          static.blurred, box)
             images.append(img)
             if view == 0:
-                depth[np.isinf(depth)] = 0.0
+                # Nothing at all (depth 0) can only be where the static layer has nothing.
+                seen = depth.take(static.empty)
+                depth[static.empty] = np.where(np.isinf(seen), np.float32(0.0), seen)
                 depth_left = depth.reshape(cam.height, cam.width)
                 mask_left = np.zeros(cam.height * cam.width, bool)
                 mask_left[t_frag.flat] = True
