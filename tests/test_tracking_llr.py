@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from vfdata.tracking.llr import llr_residual, nearest_neighbours, reconstruction_weights
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import farthest_point_sampling, isolated_points, select_reference_points
 
 
 def test_neighbours_exclude_the_point_itself():
@@ -74,3 +74,17 @@ def test_farthest_point_sampling_is_seeded_and_well_spread():
     random_pick = rng.choice(5000, 64, replace=False)
     assert min_spacing(a) > 3 * min_spacing(random_pick)
     assert len(farthest_point_sampling(points[:10], 64)) == 10
+
+
+def test_reference_selection_leaves_out_flying_pixels():
+    # A sheet sampled at ~0.5 mm plus one "flying pixel" 50 mm behind it, as colon_000's first frame has:
+    # farthest-point sampling alone picks it (it is far from everything); the selection must not.
+    rng = np.random.default_rng(0)
+    sheet = np.c_[rng.uniform(-20, 20, (5000, 2)), np.full(5000, 80.0)]
+    cloud = np.vstack([sheet, [[0.0, 0.0, 130.0]]])
+    assert len(cloud) - 1 in farthest_point_sampling(cloud, 64, seed=0)
+    assert np.flatnonzero(isolated_points(cloud)).tolist() == [len(cloud) - 1]
+    chosen = select_reference_points(cloud, 64, seed=0)
+    assert len(chosen) == 64 and len(cloud) - 1 not in chosen
+    assert np.array_equal(chosen, select_reference_points(cloud, 64, seed=0))
+    assert len(cloud) - 1 in select_reference_points(cloud, 64, seed=0, isolation_factor=0)  # 0 turns it off

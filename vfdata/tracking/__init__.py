@@ -11,7 +11,7 @@ from vfdata.tracking.cotracker import CoTrackerTracker, load_cotracker
 from vfdata.tracking.geometry import GeometryTracker, TrackerOptions
 from vfdata.tracking.groundtruth import GroundTruthTracker, ground_truth_tracks
 from vfdata.tracking.klt import KLTTracker
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import farthest_point_sampling, isolated_points, select_reference_points
 
 __all__ = [
     "CoTrackerTracker",
@@ -20,6 +20,8 @@ __all__ = [
     "KLTTracker",
     "TrackerOptions",
     "farthest_point_sampling",
+    "isolated_points",
+    "select_reference_points",
     "ground_truth_tracks",
     "load_cotracker",
 ]

@@ -19,7 +19,7 @@ import torch
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import BackendError
 from vfdata.tracking.lifting import lift_pixels
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import select_reference_points
 
 CHECKPOINT_HINT = "download scaled_offline.pth from https://huggingface.co/facebook/cotracker3"
 
@@ -63,7 +63,7 @@ class CoTrackerTracker:
         self.camera = camera
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
-        self.reference = reference_points[farthest_point_sampling(reference_points, num_points, seed=seed)]
+        self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
 
     @torch.no_grad()
     def track(

@@ -50,7 +50,7 @@ from vfdata.tracking.adam import Adam
 from vfdata.tracking.flow import refine_from_reference, to_gray, track_lk
 from vfdata.tracking.llr import nearest_neighbours, normal_matrix, reconstruction_weights
 from vfdata.tracking.losses import chamfer_term, flow_term
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import ISOLATION_FACTOR, select_reference_points
 from vfdata.tracking.siren import Siren
 
 MODES = ("geometry", "geometry+")
@@ -84,6 +84,9 @@ class TrackerOptions:
     # (see vfdata.tracking.flow.refine_from_reference); 0 turns it off.
     reference_match_px: float = 5.0
     reference_image: np.ndarray | None = None  # geometry+: the left image of the reference frame
+    # Reference points whose 8th neighbour is farther than this times the median are not picked (0: off);
+    # see vfdata.tracking.sampling.isolated_points and docs/tracking.md ("Why it drifted").
+    isolation_factor: float = ISOLATION_FACTOR
 
 
 class GeometryTracker:
@@ -117,7 +120,7 @@ class GeometryTracker:
             raise ValueError(f"reference cloud has {len(reference_points)} points, need > {opt.neighbours}")
         self.camera = camera
         self.seed = seed
-        chosen = farthest_point_sampling(reference_points, num_points, seed=seed)
+        chosen = select_reference_points(reference_points, num_points, seed, opt.isolation_factor)
         self.reference = reference_points[chosen]  # (n, 3) float64, mm
         self._points = self.reference.copy()
         self._reference_uv = None if camera is None else camera.project(self.reference)

@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from vfdata.calibration import PinholeCamera
 from vfdata.tracking.llr import reconstruction_weights
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import select_reference_points
 
 
 def ground_truth_tracks(
@@ -56,7 +56,7 @@ class GroundTruthTracker:
     ):
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
-        self.reference = reference_points[farthest_point_sampling(reference_points, num_points, seed=seed)]
+        self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.camera = camera
         self.tracks, self.normals = ground_truth_tracks(self.reference, material_points, material_normals)
         self._points = self.reference.copy()

@@ -14,7 +14,7 @@ import numpy as np
 from vfdata.calibration import PinholeCamera
 from vfdata.tracking.flow import to_gray, track_lk
 from vfdata.tracking.lifting import lift_pixels
-from vfdata.tracking.sampling import farthest_point_sampling
+from vfdata.tracking.sampling import select_reference_points
 
 
 class KLTTracker:
@@ -34,7 +34,7 @@ class KLTTracker:
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
         self.camera = camera
-        self.reference = reference_points[farthest_point_sampling(reference_points, num_points, seed=seed)]
+        self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.max_forward_backward_px = max_forward_backward_px
         self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN once lost
         self.alive = np.isfinite(self.uv).all(axis=1)
