@@ -31,8 +31,9 @@ outside the current one are left out, so specular highlights and the instrument 
 takes that match where it agrees with the flow within `reference_match_px`: frame-to-frame flow drifts
 over hundreds of frames, the reference match does not.
 
-Defaults (k, lambdas, iterations, learning rate, network size) were chosen by measurement on the
-simulator's `colon` test recordings; see docs/tracking.md, which also has the speed figures.
+Defaults (k, lambdas, iterations, learning rate, network size) were first chosen by measurement on the
+simulator's `colon` test recordings, the reference selection's `isolation_factor` and the lambda check on
+its train recordings (docs/tracking.md, "Model selection", which also has the speed figures).
 torch.set_num_threads(1) is the caller's choice; one thread per process and one process per
 recording is fastest.
 """
@@ -66,8 +67,8 @@ class TrackerOptions:
     mode: str = "geometry"
     neighbours: int = 8  # k of the LLR terms
     lambda_chamfer: float = 1.0
-    lambda_ref: float = 30.0
-    lambda_prev: float = 30.0
+    lambda_ref: float = 100.0
+    lambda_prev: float = 100.0
     lambda_flow: float = 10.0  # geometry+ only
     iterations: int = 10  # Adam steps per frame
     learning_rate: float = 1e-3
