@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+import torch.nn.functional as F
 from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 
 from vfmodels.set_transformer import InducedSetAttentionBlock, MultiheadAttentionBlock, SetTransformerLSTM
@@ -95,3 +96,22 @@ def test_mab_masks_keys():
 def test_rejects_bad_head_count():
     with pytest.raises(ValueError):
         SetTransformerLSTM(dim=64, heads=5)
+
+
+def test_few_keys_attention_matches_per_head_attention():
+    # The compiled path's block-diagonal arithmetic must be the same attention as the per-head kernel.
+    torch.manual_seed(0)
+    mab = MultiheadAttentionBlock(64, 4)
+    q, k, v = torch.randn(3, 256, 64), torch.randn(3, 16, 64), torch.randn(3, 16, 64)
+    expected = F.scaled_dot_product_attention(mab._split(q), mab._split(k), mab._split(v))
+    expected = expected.transpose(1, 2).reshape(3, 256, 64)
+    torch.testing.assert_close(mab._attend_few_keys(q, k, v), expected, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_compiled_model_matches_eager():
+    torch.manual_seed(0)
+    model = SetTransformerLSTM(in_features=6).eval()
+    x, valid = torch.randn(2, 4, 64, 6), torch.rand(2, 4, 64) > 0.2
+    with torch.inference_mode():
+        torch.testing.assert_close(torch.compile(model)(x, valid), model(x, valid), atol=1e-6, rtol=1e-5)
