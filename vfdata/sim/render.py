@@ -1,5 +1,6 @@
-"""Stereo endoscope rendering of quad meshes: painter's-order rasterisation of quad ids with OpenCV,
-then vectorised per-pixel perspective-correct interpolation, texturing and shading in numpy.
+"""Stereo endoscope rendering of quad meshes: z-buffer rasterisation, perspective-correct
+interpolation, texturing and shading, each one compiled loop over the pixels (vfdata.sim.kernels);
+textures, blur and sensor noise with OpenCV.
 
 Scene layers, composited per pixel by depth: a static layer (tissue bed and fixture, rendered once
 per recording and view), the deforming tube, and the instrument. Lighting: a point light at the scope
@@ -19,9 +20,9 @@ import cv2
 import numpy as np
 
 from vfdata.calibration import PinholeCamera
+from vfdata.sim import kernels
 
 _NEAR_MM = 2.0
-_SHIFT = 4  # sub-pixel bits for cv2.fillConvexPoly
 
 
 # --- geometry helpers -----------------------------------------------------------------------------
@@ -202,28 +203,17 @@ class Fragments:
                          self.drawn, self.coef, self.box, None if self.values is None else self.values[:, keep])
 
     def interpolate(self) -> Fragments:
-        # One 1-D gather per coefficient: much faster than a gather along the last axis of coef.
-        count = self.coef.shape[0] - 1
-        values = np.empty((count, len(self.flat)), np.float32)
-        for c in range(count):
-            a, b, k = self.coef[c + 1]
-            v = a.take(self.tri)
-            v *= self.px
-            v += b.take(self.tri) * self.py
-            v += k.take(self.tri)
-            np.multiply(v, self.depth, out=values[c])
-        self.values = values
+        self.values = kernels.interpolate(self.coef, self.tri, self.px, self.py, self.depth)
         return self
 
     def face(self, face_attrs: np.ndarray) -> np.ndarray:
         """(F, P) per-quad attributes (Q, F) of the covering quads."""
-        return face_attrs.take(self.drawn, axis=0).T.take(self.tri >> 1, axis=1)
+        return kernels.face_values(np.ascontiguousarray(face_attrs), self.drawn, self.tri)
 
     @property
     def normal(self) -> np.ndarray:
         """(3, P) unit normals."""
-        n = self.values[:3]
-        return n / np.maximum(np.sqrt((n * n).sum(0)), 1e-12)
+        return kernels.unit_columns(self.values[:3])
 
     @property
     def attrs(self) -> np.ndarray:
@@ -231,128 +221,23 @@ class Fragments:
 
     def position(self, camera: PinholeCamera) -> np.ndarray:
         """(3, P) camera-frame positions (mm)."""
-        z = self.depth
-        out = np.empty((3, len(z)), np.float32)
-        for row, pix, c, f in ((0, self.px, camera.cx, camera.fx), (1, self.py, camera.cy, camera.fy)):
-            np.subtract(pix, np.float32(c), out=out[row])
-            out[row] *= z
-            out[row] *= np.float32(1.0 / f)
-        out[2] = z
-        return out
-
-    @staticmethod
-    def empty(attrs: int) -> Fragments:
-        """No fragments, for a mesh with `attrs` vertex attributes (nothing of it in view)."""
-        i = np.zeros(0, np.intp)
-        f = np.zeros(0, np.float32)
-        return Fragments(i, f, f, f, i, i, np.zeros((4 + attrs, 3, 0), np.float32))
-
-
-def _plane_coefficients(x: np.ndarray, y: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Per triangle, (A, B, C) with A x + B y + C = f through its three vertices. x, y: (3, T) (one
-    row per corner); f: (3, C, T). Returns (C, 3, T) float32; degenerate triangles get the constant f0."""
-    dx1, dx2 = x[1] - x[0], x[2] - x[0]
-    dy1, dy2 = y[1] - y[0], y[2] - y[0]
-    det = dx1 * dy2 - dx2 * dy1
-    ok = np.abs(det) > 1e-9
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    df1, df2 = f[1] - f[0], f[2] - f[0]
-    a = (df1 * dy2 - df2 * dy1) * inv
-    b = (dx1 * df2 - dx2 * df1) * inv
-    c = f[0] - a * x[0] - b * y[0]
-    return np.stack([a, b, c], axis=1).astype(np.float32)
-
-
-@lru_cache(maxsize=4)
-def _pixel_grids(width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(H, W) pixel columns and rows as float32, and flat pixel indices; read-only (shared)."""
-    ys, xs = np.mgrid[:height, :width]
-    grids = (xs.astype(np.float32), ys.astype(np.float32), (ys * width + xs).astype(np.intp))
-    for g in grids:
-        g.flags.writeable = False
-    return grids
+        return kernels.positions(self.px, self.py, self.depth, camera.fx, camera.fy, camera.cx, camera.cy)
 
 
 def rasterize(camera: PinholeCamera, mesh: Mesh, cull_backfaces: bool = True) -> Fragments:
-    """Rasterise the mesh (vertices in this camera's frame) into fragments of the nearest surface
-    (painter's order by quad depth). Each quad is split along its 0-2 diagonal; depths are exact for
-    the planar triangles. Call `.interpolate()` on (a subset of) the result for normals and attributes."""
-    v = mesh.verts
-    z = v[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = np.stack([camera.fx * v[:, 0] / z + camera.cx, camera.fy * v[:, 1] / z + camera.cy], axis=1)
-    # Per-quad tests on corner values laid out (4, Q): 1-D gathers, cheap reductions over 4 rows.
-    q = mesh.quads
-    qt = np.ascontiguousarray(q.T)
-    qz = z.take(qt)
-    qx = uv[:, 0].take(qt)
-    qy = uv[:, 1].take(qt)
-    with np.errstate(invalid="ignore"):
-        ok = (qz.min(axis=0) > _NEAR_MM) & (qx.max(axis=0) >= -1) & (qx.min(axis=0) <= camera.width)
-        ok &= (qy.max(axis=0) >= -1) & (qy.min(axis=0) <= camera.height)
-    if cull_backfaces:  # the quad faces away if (sum of corners) . (sum of corner normals) >= 0
-        facing = np.zeros(len(q))
-        for k in range(3):
-            facing += v[:, k].take(qt).sum(axis=0) * mesh.normals[:, k].take(qt).sum(axis=0)
-        ok &= facing < 0
-    ids = np.nonzero(ok)[0]
-    if len(ids) == 0:
-        return Fragments.empty(mesh.attrs.shape[1])
-    ids = ids[np.argsort(-qz[:, ids].sum(axis=0), kind="stable")]  # far to near
-    # Grow each quad by half a pixel about its centre so that neighbours overlap instead of leaving
-    # cracks; the overlap is resolved by the drawing order and the planes extrapolate exactly.
-    quad_uv = np.stack([qx[:, ids].T, qy[:, ids].T], axis=2)
-    centre_uv = quad_uv.mean(axis=1, keepdims=True)
-    rel = quad_uv - centre_uv
-    grow = 0.6 / np.maximum(np.linalg.norm(rel, axis=2, keepdims=True), 1e-6)
-    pts = np.round((quad_uv + rel * grow) * (1 << _SHIFT)).astype(np.int32)
-    # Draw each quad's rank in the drawing order into a buffer covering only the drawn quads' bounding
-    # box (the image's other pixels never need looking at); only drawn quads get triangle planes below.
-    lo = np.maximum(pts.min(axis=(0, 1)) >> _SHIFT, 0)
-    hi = np.minimum((pts.max(axis=(0, 1)) >> _SHIFT) + 2, (camera.width, camera.height))
-    if (hi <= lo).any():
-        return Fragments.empty(mesh.attrs.shape[1])
-    qid = np.full((hi[1] - lo[1], hi[0] - lo[0]), -1, dtype=np.int32)
-    pts -= (lo << _SHIFT).astype(np.int32)
-    fill = cv2.fillConvexPoly
-    for rank, poly in enumerate(pts):
-        fill(qid, poly, rank, cv2.LINE_8, _SHIFT)
-
-    # The covered pixels' ranks, coordinates and flat indices, in row-major order: boolean selections
-    # from the buffer and from precomputed pixel grids (cheaper than flat indices and a divmod).
-    covered = qid >= 0
-    rank = qid[covered]
-    grid_x, grid_y, grid_flat = _pixel_grids(camera.width, camera.height)
-    window = (slice(int(lo[1]), int(hi[1])), slice(int(lo[0]), int(hi[0])))
-    px = grid_x[window][covered]
-    py = grid_y[window][covered]
-    flat = grid_flat[window][covered]
-    # Which triangle: the side of the 0-2 diagonal that vertex 3 lies on.
-    a, c, d = quad_uv[:, 0], quad_uv[:, 2], quad_uv[:, 3]
-    ex, ey = c[:, 0] - a[:, 0], c[:, 1] - a[:, 1]
-    side_d = np.sign(ex * (d[:, 1] - a[:, 1]) - ey * (d[:, 0] - a[:, 0]))
-    e = np.stack([-ey * side_d, ex * side_d, (ey * a[:, 0] - ex * a[:, 1]) * side_d]).astype(np.float32)
-    second = (e[0].take(rank) * px + e[1].take(rank) * py + e[2].take(rank)) > 0
-    tri = 2 * rank + second
-    # Plane coefficients of 1/z and of (normal, attrs)/z for both triangles of every drawn quad.
-    dq = qt[:, ids]
-    # Corners (3, 2 drawn) of the triangles 2 r (corners 0, 1, 2) and 2 r + 1 (corners 0, 2, 3).
-    corners = np.stack([np.stack([dq[0], dq[0]], 1), np.stack([dq[1], dq[2]], 1),
-                        np.stack([dq[2], dq[3]], 1)]).reshape(3, -1)
-    inv_z = 1.0 / np.where(z > _NEAR_MM, z, np.inf)
-    chans = np.concatenate([inv_z[None], mesh.normals.T * inv_z, mesh.attrs.T * inv_z])  # (C, N)
-    with np.errstate(invalid="ignore"):
-        coef = _plane_coefficients(uv[:, 0].take(corners), uv[:, 1].take(corners),
-                                   chans[:, corners].transpose(1, 0, 2))
-    if not np.isfinite(coef).all():  # (one pass; nan_to_num alone makes several)
-        coef = np.nan_to_num(coef, nan=0.0, posinf=0.0, neginf=0.0)
-    a0, b0, c0 = coef[0]
-    inv_depth = a0.take(tri) * px
-    inv_depth += b0.take(tri) * py
-    inv_depth += c0.take(tri)
-    depth = 1.0 / np.maximum(inv_depth, np.float32(1e-9))
-    return Fragments(flat, depth, px, py, tri, ids, coef, (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])))
-
+    """Rasterise the mesh (vertices in this camera's frame) into fragments of the nearest surface: a
+    z-buffer over the quads' triangles (each quad split along its 0-2 diagonal; depths exact for the
+    planar triangles), pixels covered where their centre is inside a triangle (exact fixed-point edge
+    tests: no cracks or double cover between neighbours). Quads with a corner nearer than the near
+    plane are dropped, and, with `cull_backfaces`, those facing away (by their vertex normals). Call
+    `.interpolate()` on (a subset of) the result for normals and attributes."""
+    f64 = np.float64
+    flat, depth, px, py, tri, drawn, coef, box = kernels.rasterize_quads(
+        np.ascontiguousarray(mesh.verts, f64), np.ascontiguousarray(mesh.normals, f64),
+        np.ascontiguousarray(mesh.attrs, f64), np.ascontiguousarray(mesh.quads, np.int64),
+        float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
+        int(camera.height), _NEAR_MM, bool(cull_backfaces))
+    return Fragments(flat, depth, px, py, tri, drawn, coef, box)
 
 
 # --- textures ---------------------------------------------------------------------------------------
@@ -509,37 +394,14 @@ _TONE_LUT = np.round(_tone_curve(np.linspace(0, _TONE_MAX, _TONE_BINS))).astype(
 
 
 def tone_map(linear: np.ndarray) -> np.ndarray:
-    """Linear radiance -> display value uint8 (soft shoulder, then sRGB-like gamma), by table."""
-    idx = np.clip(linear * np.float32((_TONE_BINS - 1) / _TONE_MAX), 0, _TONE_BINS - 1).astype(np.int32)
-    return _TONE_LUT.take(idx)
+    """Linear radiance (3, P) -> display values (3, P) uint8 (soft shoulder, then sRGB-like gamma), by
+    table."""
+    return kernels.tone_map(linear, _TONE_LUT, (_TONE_BINS - 1) / _TONE_MAX)
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _normalize(a: np.ndarray) -> np.ndarray:
-    return a * (np.float32(1.0) / np.sqrt(np.maximum(_dot(a, a), np.float32(1e-24))))
-
-
-def _dot_const(c: np.ndarray, a: np.ndarray) -> np.ndarray | np.float32:
-    """c . a for a constant 3-vector c and (3, P) a, skipping c's zero components (the light sits on the
-    camera's x axis, so most of them are)."""
-    out = np.float32(0.0)
-    for k in range(3):
-        if c[k] != 0:
-            out = out + np.float32(c[k]) * a[k]
-    return out
-
-
-def _exp(x: np.ndarray) -> np.ndarray:
-    # OpenCV's vectorised float32 exp / log run about three times faster than numpy's here (OpenCV
-    # returns None for an empty array).
-    return cv2.exp(x).reshape(x.shape) if x.size else x.copy()
-
-
-def _log(x: np.ndarray) -> np.ndarray:
-    return cv2.log(x).reshape(x.shape) if x.size else x.copy()
+def _per_fragment(x: np.ndarray | float) -> np.ndarray:
+    """A per-fragment (P,) or constant parameter as a float32 vector (of length 1 if constant)."""
+    return np.ascontiguousarray(np.atleast_1d(np.asarray(x, np.float32)).ravel())
 
 
 def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray | float,
@@ -548,59 +410,11 @@ def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: n
     """Linear RGB radiance (3, P) of surface points (3, P) with unit normals (3, P) and albedo (3, P)
     lit by a point light near the camera, times `scale` (e.g. the lens vignetting). Wrapped Lambert
     diffuse plus Blinn-Phong specular; `glint` adds a sharp second lobe (8 times the exponent) where
-    the surface is wettest (the small saturated sparkles of a moist tissue film).
-
-    Written for speed on ~10^5 pixels: float32 throughout; every dot product with the vector to the
-    light L - p expanded into dot products with the constant L and two per-pixel ones (p.p, n.p); the
-    half vector's cosine from dot products (n.h = (n.l + n.v) / |l + v|, |l + v|^2 = 2 + 2 l.v)
-    instead of building it. The lobes are floored at e^-60 (invisible): tinier values would be
-    denormal floats, which the CPU handles some hundred times slower."""
-    f32 = np.float32
-    lpos = np.asarray(light.position, np.float64)
-    pp = _dot(position, position)
-    n_p = _dot(normal, position)
-    l_p = _dot_const(lpos, position)
-    # |L - p|^2 = L.L - 2 L.p + p.p
-    dist2 = l_p * f32(-2.0)
-    dist2 += pp
-    dist2 += f32(lpos @ lpos)
-    inv_dist = f32(1.0) / np.sqrt(dist2)
-    inv_view = f32(-1.0) / np.sqrt(pp)
-    ndl = _dot_const(lpos, normal) - n_p  # n . (L - p)
-    ndl *= inv_dist
-    ndv = n_p
-    ndv *= inv_view
-    ldv = l_p - pp  # (L - p) . p
-    ldv *= inv_dist
-    ldv *= inv_view
-    # Cosine to the half vector.
-    ldv += f32(1.0)
-    np.maximum(ldv, f32(1e-6), out=ldv)
-    ndh = ndl + ndv
-    ndh *= f32(np.sqrt(0.5)) / np.sqrt(ldv)
-    np.clip(ndh, f32(1e-6), f32(1.0), out=ndh)
-    log_lobe = _log(ndh)
-    log_lobe *= shininess
-    np.maximum(log_lobe, f32(-60.0), out=log_lobe)
-    spec = _exp(log_lobe)
-    spec *= gloss
-    if glint:
-        log_lobe *= f32(8.0)
-        np.maximum(log_lobe, f32(-60.0), out=log_lobe)
-        sharp = _exp(log_lobe)
-        sharp *= gloss * gloss * f32(glint)
-        spec += sharp
-    spec *= ndl > 0
-    falloff = inv_dist * inv_dist
-    falloff *= f32(light.intensity) * scale
-    spec *= falloff
-    diffuse = ndl + f32(wrap)
-    np.maximum(diffuse, f32(0.0), out=diffuse)
-    diffuse *= falloff * f32(1.0 / (1.0 + wrap))
-    diffuse += f32(ambient) * scale
-    out = albedo * diffuse
-    out += spec
-    return out
+    the surface is wettest (the small saturated sparkles of a moist tissue film). Lobes below e^-60
+    (invisible) are left out."""
+    return kernels.shade(position, normal, np.ascontiguousarray(albedo), _per_fragment(gloss), _per_fragment(shininess),
+                         _per_fragment(scale), np.asarray(light.position, np.float64), float(light.intensity),
+                         float(wrap), float(ambient), float(glint))
 
 
 def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
@@ -608,22 +422,7 @@ def bumped_normals(normal: np.ndarray, tangent_s: np.ndarray, grad_u: np.ndarray
     """Unit normals (3, P) perturbed by a bump map's gradients (u around the tube, v along it).
     `normal`: (3, P), near unit length (interpolated unit normals: the result is normalised anyway);
     `tangent_s`: (3, P) unit directions along v, orthogonalised here against the normal."""
-    f32 = np.float32
-    ts = tangent_s - _dot(tangent_s, normal) * normal
-    ts *= f32(1.0) / np.sqrt(np.maximum(_dot(ts, ts), f32(1e-24)))
-    tu = np.empty_like(ts)
-    np.multiply(normal[1], ts[2], out=tu[0])
-    tu[0] -= normal[2] * ts[1]
-    np.multiply(normal[2], ts[0], out=tu[1])
-    tu[1] -= normal[0] * ts[2]
-    np.multiply(normal[0], ts[1], out=tu[2])
-    tu[2] -= normal[1] * ts[0]
-    tu *= grad_u * f32(-strength)
-    ts *= grad_v * f32(-strength)
-    tu += ts
-    tu += normal
-    tu *= f32(1.0) / np.sqrt(np.maximum(_dot(tu, tu), f32(1e-24)))
-    return tu
+    return kernels.bump_along(normal, tangent_s, grad_u, grad_v, float(strength))
 
 
 def bump_in_frame(normal: np.ndarray, frame: np.ndarray, grad_u: np.ndarray, grad_v: np.ndarray,
@@ -631,16 +430,7 @@ def bump_in_frame(normal: np.ndarray, frame: np.ndarray, grad_u: np.ndarray, gra
     """Unit normals (3, P) perturbed by a bump map's gradients in a given tangent frame: `frame` (6, P)
     holds the unit tangents across (u) and along (v) the texture, e.g. one frame per quad. `normal`
     need not be exactly unit length (the result is normalised)."""
-    k = np.float32(-strength)
-    gu = grad_u * k
-    gv = grad_v * k
-    out = np.empty_like(normal)
-    for c in range(3):
-        np.multiply(frame[c], gu, out=out[c])
-        out[c] += frame[3 + c] * gv
-        out[c] += normal[c]
-    out *= np.float32(1.0) / np.sqrt(np.maximum(_dot(out, out), np.float32(1e-24)))
-    return out
+    return kernels.bump_framed(normal, frame, grad_u, grad_v, float(strength))
 
 
 def vignette(camera: PinholeCamera, strength: float = 1.0) -> np.ndarray:
