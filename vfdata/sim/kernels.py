@@ -72,9 +72,10 @@ def _visible_quads(uv: np.ndarray, z: np.ndarray, verts: np.ndarray, normals: np
 def _triangle_planes(uv: np.ndarray, chans: np.ndarray, quads: np.ndarray, drawn: np.ndarray) -> np.ndarray:
     """Per triangle (2 k: corners 0, 1, 2 of quad drawn[k]; 2 k + 1: corners 0, 2, 3), the screen-plane
     coefficients (A, B, C) with A x + B y + C = f at its corners, for each channel f of `chans`
-    (N, C): (C, 3, T) float32. Degenerate triangles get the constant f at corner 0."""
+    (N, C): (T, C, 3) float32 (a triangle's coefficients together: the interpolation reads them
+    together). Degenerate triangles get the constant f at corner 0."""
     n_chan = chans.shape[1]
-    coef = np.empty((n_chan, 3, 2 * len(drawn)), np.float32)
+    coef = np.empty((2 * len(drawn), n_chan, 3), np.float32)
     for k in range(len(drawn)):
         q = drawn[k]
         for half in range(2):
@@ -94,9 +95,9 @@ def _triangle_planes(uv: np.ndarray, chans: np.ndarray, quads: np.ndarray, drawn
                 cc = f0 - a * x0 - b * y0
                 if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(cc)):
                     a = b = cc = 0.0
-                coef[c, 0, t] = a
-                coef[c, 1, t] = b
-                coef[c, 2, t] = cc
+                coef[t, c, 0] = a
+                coef[t, c, 1] = b
+                coef[t, c, 2] = cc
     return coef
 
 
@@ -164,7 +165,7 @@ def _zbuffer(uv: np.ndarray, quads: np.ndarray, drawn: np.ndarray, coef: np.ndar
             bias0 = 0 if _edge_owned(bx - ax, by - ay) else -1
             bias1 = 0 if _edge_owned(cx - bx, cy - by) else -1
             bias2 = 0 if _edge_owned(ax - cx, ay - cy) else -1
-            a_z, b_z, c_z = coef[0, 0, t], coef[0, 1, t], coef[0, 2, t]
+            a_z, b_z, c_z = coef[t, 0, 0], coef[t, 0, 1], coef[t, 0, 2]
             for py in range(py0, py1 + 1):
                 yy = py * s
                 e0 = (bx - ax) * (yy - ay) - (by - ay) * (px0 * s - ax) + bias0
@@ -224,7 +225,7 @@ def rasterize_quads(verts: np.ndarray, normals: np.ndarray, attrs: np.ndarray, q
     attributes (N, A), quads (Q, 4)) with a z-buffer, each quad as the triangles (0, 1, 2) and
     (0, 2, 3). Returns the covered pixels in row-major order (flat index, depth mm, x, y, triangle
     2 k + half of quad drawn[k]), drawn, the triangles' plane coefficients of 1/z, normal / z and
-    attrs / z (3 + A + 1, 3, T) float32, and the box holding the pixels."""
+    attrs / z (T, 1 + 3 + A, 3) float32, and the box holding the pixels."""
     n = len(verts)
     uv = np.empty((n, 2), np.float64)
     z = verts[:, 2].copy()
@@ -248,15 +249,15 @@ def rasterize_quads(verts: np.ndarray, normals: np.ndarray, attrs: np.ndarray, q
 
 @njit(**_JIT)
 def interpolate(coef: np.ndarray, tri: np.ndarray, px: np.ndarray, py: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """Perspective-correct values (C - 1, P) float32 of channels 1.. of the plane coefficients (channel
-    / z) at the fragments: (A x + B y + C) * z."""
-    count = coef.shape[0] - 1
+    """Perspective-correct values (C - 1, P) float32 of channels 1.. of the plane coefficients (T, C, 3)
+    (channel / z) at the fragments: (A x + B y + C) * z."""
+    count = coef.shape[1] - 1
     out = np.empty((count, len(tri)), np.float32)
     for i in range(len(tri)):
         t = tri[i]
-        x, y, d = np.float64(px[i]), np.float64(py[i]), np.float64(depth[i])
+        x, y, d = px[i], py[i], depth[i]
         for c in range(count):
-            out[c, i] = (coef[c + 1, 0, t] * x + coef[c + 1, 1, t] * y + coef[c + 1, 2, t]) * d
+            out[c, i] = (coef[t, c + 1, 0] * x + coef[t, c + 1, 1] * y + coef[t, c + 1, 2]) * d
     return out
 
 
@@ -337,52 +338,77 @@ def bump_framed(normal: np.ndarray, frame: np.ndarray, grad_u: np.ndarray, grad_
     return out
 
 
-# Lobes below e^-60 are invisible: skip their exp.
-_LOBE_FLOOR = -60.0
+# Lobes below e^-60 are invisible (and tinier values would be denormal floats, which the CPU handles
+# some hundred times slower).
+LOBE_FLOOR = -60.0
+# The glint lobe is the specular lobe to the 8th power: only lobes above e^(LOBE_FLOOR / 8) matter.
+_GLINT_BASE = math.exp(LOBE_FLOOR / 8)
 
 
 @njit(**_JIT)
-def shade(position: np.ndarray, normal: np.ndarray, albedo: np.ndarray, gloss: np.ndarray, shininess: np.ndarray,
-          scale: np.ndarray, light: np.ndarray, intensity: float, wrap: float, ambient: float,
-          glint: float) -> np.ndarray:
-    """Linear RGB radiance (3, P) float32; see vfdata.sim.render.shade. `gloss`, `shininess` and `scale`
-    hold one value per fragment or a single value for all."""
+def shade_terms(position: np.ndarray, normal: np.ndarray, gloss: np.ndarray, scale: np.ndarray,
+                light: np.ndarray, intensity: float, wrap: float, ambient: float) -> np.ndarray:
+    """The first half of vfdata.sim.render.shade: per fragment (3, P) float32, the diffuse factor (times
+    the albedo), the specular weight (gloss times the light's falloff; 0 where the light is behind the
+    surface) and the cosine to the half vector (clamped to [1e-6, 1]), whose power is the specular
+    lobe. `gloss` and `scale` (float32) hold one value per fragment or a single value for all.
+    Float32 throughout and no branches, so that the loop runs on SIMD lanes."""
+    f32 = np.float32
     n = position.shape[1]
     out = np.empty((3, n), np.float32)
     g_step = 1 if len(gloss) > 1 else 0
-    s_step = 1 if len(shininess) > 1 else 0
     k_step = 1 if len(scale) > 1 else 0
-    lx, ly, lz = light[0], light[1], light[2]
-    half = math.sqrt(0.5)
+    lx, ly, lz = f32(light[0]), f32(light[1]), f32(light[2])
+    half = f32(math.sqrt(0.5))
+    one = f32(1.0)
+    zero = f32(0.0)
+    power = f32(intensity)
+    wrap32 = f32(wrap)
+    diffuse_norm = f32(1.0 / (1.0 + wrap))
+    ambient32 = f32(ambient)
     for i in range(n):
-        px, py, pz = np.float64(position[0, i]), np.float64(position[1, i]), np.float64(position[2, i])
-        nx, ny, nz = np.float64(normal[0, i]), np.float64(normal[1, i]), np.float64(normal[2, i])
-        dx, dy, dz = lx - px, ly - py, lz - pz                      # to the light
-        inv_dist = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
-        inv_view = -1.0 / math.sqrt(px * px + py * py + pz * pz)   # v = -p / |p|
+        px, py, pz = position[0, i], position[1, i], position[2, i]
+        nx, ny, nz = normal[0, i], normal[1, i], normal[2, i]
+        dx, dy, dz = lx - px, ly - py, lz - pz                     # to the light
+        inv_dist = one / math.sqrt(dx * dx + dy * dy + dz * dz)
+        inv_view = -one / math.sqrt(px * px + py * py + pz * pz)  # v = -p / |p|
         ndl = (nx * dx + ny * dy + nz * dz) * inv_dist
         ndv = (nx * px + ny * py + nz * pz) * inv_view
         ldv = (dx * px + dy * py + dz * pz) * inv_dist * inv_view
         # Cosine to the half vector: (n.l + n.v) / |l + v|, |l + v|^2 = 2 + 2 l.v.
-        ndh = (ndl + ndv) * half / math.sqrt(max(ldv + 1.0, 1e-6))
-        ndh = min(max(ndh, 1e-6), 1.0)
-        g = gloss[i * g_step]
+        ndh = (ndl + ndv) * half / math.sqrt(max(ldv + one, f32(1e-6)))
         k = scale[i * k_step]
-        falloff = inv_dist * inv_dist * intensity * k
-        spec = 0.0
-        if ndl > 0:
-            log_lobe = shininess[i * s_step] * math.log(np.float32(ndh))
-            if log_lobe > _LOBE_FLOOR:
-                lobe = np.float64(math.exp(log_lobe))
-                spec = lobe * g
-                if glint != 0 and 8.0 * log_lobe > _LOBE_FLOOR:
-                    lobe *= lobe
-                    lobe *= lobe
-                    spec += lobe * lobe * g * g * glint  # the lobe to the 8th power
-            spec *= falloff
-        diffuse = max(ndl + wrap, 0.0) * falloff / (1.0 + wrap) + ambient * k
+        falloff = inv_dist * inv_dist * power * k
+        out[0, i] = max(ndl + wrap32, zero) * falloff * diffuse_norm + ambient32 * k
+        out[1, i] = gloss[i * g_step] * falloff if ndl > zero else zero
+        out[2, i] = min(max(ndh, f32(1e-6)), one)
+    return out
+
+
+@njit(**_JIT)
+def shade_combine(albedo: np.ndarray, terms: np.ndarray, lobe: np.ndarray, gloss: np.ndarray,
+                  glint: float) -> np.ndarray:
+    """The second half of vfdata.sim.render.shade: radiance (3, P) float32 = albedo (3, P) x diffuse +
+    weight x (lobe + glint x gloss x lobe^8), from shade_terms' (3, P) and the lobe (P,) (floored at
+    e^LOBE_FLOOR)."""
+    f32 = np.float32
+    n = albedo.shape[1]
+    out = np.empty((3, n), np.float32)
+    g_step = 1 if len(gloss) > 1 else 0
+    glint32 = f32(glint)
+    base = f32(_GLINT_BASE)
+    zero = f32(0.0)
+    for i in range(n):
+        l1 = lobe[i]
+        l8 = max(l1, base)  # (no denormals in the powers of lobes that do not count)
+        l8 *= l8
+        l8 *= l8
+        l8 *= l8
+        sharp = l8 * gloss[i * g_step] * glint32 if l1 > base else zero
+        spec = terms[1, i] * (l1 + sharp)
+        d = terms[0, i]
         for c in range(3):
-            out[c, i] = albedo[c, i] * diffuse + spec
+            out[c, i] = albedo[c, i] * d + spec
     return out
 
 
