@@ -519,3 +519,25 @@ def finish(planes: np.ndarray, noise: tuple[np.ndarray, np.ndarray], blur_sigma:
             crop = blur(cv2.merge(list(planes[:, cy0:cy1, cx0:cx1])), blur_sigma)
             img[y0:y1, x0:x1] = cv2.add(crop[y0 - cy0:y1 - cy0, x0 - cx0:x1 - cx0], positive[y0:y1, x0:x1])
     return cv2.subtract(img, negative, dst=img)
+
+
+def warm_up() -> None:
+    """Compile the renderer's kernels (first use on this machine: about 10 s of CPU) or load them from
+    numba's cache (a fraction of a second), by rendering a small box the ways the scene does. The
+    synthesis calls it once before starting its worker processes, so that they all load, none compiles."""
+    cam = PinholeCamera(80.0, 80.0, 31.5, 23.5, 64, 48)
+    box = box_mesh(np.array([0.0, 0.0, 40.0]), np.eye(3), np.array([8.0, 6.0, 5.0]), 1.0)
+    textured = Mesh(box.verts, box.quads, box.normals, box.verts[:, :2] * 4.0, np.ones((6, 6), np.float32))
+    light = Light(np.array([2.0, 0.0, 0.0]), 1600.0)
+    for mesh in (box, textured):
+        frag = rasterize(cam, mesh, cull_backfaces=mesh is box)
+        frag = frag.subset(frag.depth > 0).interpolate()
+        material = frag.face(mesh.face_attrs)
+        frag.face(mesh.face_attrs.astype(np.int64))  # (the fixture's material ids are integers)
+        ones = np.ones(len(frag.flat), np.float32)
+        normal = frag.normal
+        if mesh is textured:
+            normal = bump_in_frame(frag.values[:3], material, ones, ones, 1.0)
+            normal = bumped_normals(normal, normal[::-1].copy(), ones, ones, 1.0)
+        albedo = np.full((3, len(ones)), 0.5, np.float32)
+        tone_map(shade(frag.position(cam), normal, albedo, ones, 30.0, light, ones, glint=3.0))

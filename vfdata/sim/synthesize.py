@@ -27,7 +27,7 @@ from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.sim.physics import Material, TubeModel
 from vfdata.sim.png import encode_png16
 from vfdata.sim.presets import BED_PALETTE, FPS, Preset, RecordingPlan, get_preset
-from vfdata.sim.render import look_at, rotation_about
+from vfdata.sim.render import look_at, rotation_about, warm_up
 from vfdata.sim.scene import CameraSetup, SceneRenderer, SceneSpec, object_rotation
 from vfdata.sim.tissue import Tube, TubeShape
 from vfdata.sim.trajectory import GraspTrajectory, MotionLimits, plan_trajectory
@@ -515,6 +515,9 @@ def synthesize(preset: str, out_dir: str | Path, seed: int = 0, workers: int = 1
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
     os.environ["OMP_NUM_THREADS"] = "1"
     os.environ["MKL_NUM_THREADS"] = "1"
+    # Compile the renderer's kernels here, once (or load them from numba's cache), so that no worker
+    # compiles them (each would, at the same time, on a first run).
+    warm_up()
     ctx = mp.get_context("spawn")
     counter = ctx.Value("q", 0)
     from tqdm import tqdm
