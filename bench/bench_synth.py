@@ -1,7 +1,11 @@
 """Generation rate of `vfdata synth` at 640x512. Target: >= 30 stereo frames/s on 2 cores end to end,
 i.e. `glove` (16,292 frames) in under 10 minutes.
 
-Two measurements:
+Three measurements:
+
+0. The one-off cost of the renderer's compiled kernels (numba): CPU time of a fresh process that
+   imports the renderer and runs `warm_up()` with an empty cache (compiles) and again (loads from
+   the cache), both in a throw-away cache folder (`--jit`; the project's own cache is not touched).
 
 1. A per-stage breakdown in CPU time of this process (physics, rendering, encoding of the stereo
    views, encoding of the ground-truth mask and depth, ground-truth points) on a few recordings
@@ -14,6 +18,7 @@ Two measurements:
    preset's, so the CPU time per frame is a little pessimistic.
 
     python bench/bench_synth.py [--preset glove] [--frames 300] [--recordings 4] [--workers 2] [--image-format jpeg]
+                                [--jit]
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -32,6 +39,7 @@ import numpy as np  # noqa: E402
 
 from vfdata.sim.png import encode_png16  # noqa: E402
 from vfdata.sim.presets import get_preset  # noqa: E402
+from vfdata.sim.render import warm_up  # noqa: E402
 from vfdata.sim.scene import SceneRenderer  # noqa: E402
 from vfdata.sim.synthesize import (  # noqa: E402
     _PNG_MASK,
@@ -100,6 +108,25 @@ def breakdown(preset: str, frames: int, image_format: str, recordings: int = 4) 
     return out
 
 
+_WARM_UP = """
+import time
+t = time.process_time()
+from vfdata.sim.render import warm_up
+warm_up()
+print(time.process_time() - t)
+"""
+
+
+def jit_cost() -> tuple[float, float]:
+    """CPU seconds of a fresh process importing the renderer and running warm_up(): with an empty numba
+    cache (compiling every kernel), then with the cache that run left (loading them)."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        runs = [float(subprocess.run([sys.executable, "-c", _WARM_UP], env=env, check=True, capture_output=True,
+                                     text=True).stdout.split()[-1]) for _ in range(2)]
+    return runs[0], runs[1]
+
+
 def end_to_end(preset: str, frames: int, workers: int, image_format: str) -> tuple[float, float, int]:
     """(wall s, CPU s of this process and its workers, stereo frames) of `synthesize(preset, frames=...)`."""
     before = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -119,8 +146,16 @@ def main() -> None:
     ap.add_argument("--recordings", type=int, default=4, help="recordings in the per-stage breakdown")
     ap.add_argument("--workers", type=int, nargs="*", default=[2], help="end-to-end runs (none: skip)")
     ap.add_argument("--image-format", default="jpeg", choices=sorted(IMAGE_FORMATS))
+    ap.add_argument("--jit", action="store_true", help="measure compiling the renderer kernels from scratch")
     args = ap.parse_args()
     load0 = os.getloadavg()[0]
+    if args.jit:
+        cold, warm = jit_cost()
+        print(f"renderer kernels in a fresh process (import + warm_up): {cold:.1f} s CPU compiling them (first run on "
+              f"a machine), {warm:.2f} s loading them from numba's cache")
+    t = time.process_time()
+    warm_up()  # (compiled or loaded here: not counted in the first recording's set-up)
+    print(f"renderer kernels ready in {time.process_time() - t:.2f} s CPU")
     b = breakdown(args.preset, args.frames, args.image_format, args.recordings)
     print(f"per-frame CPU time ({args.preset}, 640x512, views as {args.image_format}, "
           f"{b['recordings']} recordings x {args.frames} frames):")
