@@ -8,7 +8,8 @@ Runs alternate (bare, conversion, bare, ...) so both see the same load; prints e
 median rates and CPU times, and their ratios (target >= 0.7). On a machine shared with other jobs the
 CPU-time ratio is the steadier figure: with as many threads as cores, the wall ratio tends to it.
 
-    python bench/bench_bags.py [--frames 200] [--workers 2] [--ros2] [--force-hz 1000] [--repeat 3]
+    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2] [--force-hz 1000]
+                               [--repeat 3]
 """
 
 from __future__ import annotations
@@ -111,6 +112,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=200, help="stereo frames in the bag (default 200)")
     parser.add_argument("--workers", type=int, default=2, help="encoding threads for both (default 2)")
+    parser.add_argument("--convert-workers", type=int, default=None,
+                        help="encoding threads of the conversion only (default: --workers)")
     parser.add_argument("--ros2", action="store_true", help="write a ROS 2 (sqlite3) bag instead of ROS 1")
     parser.add_argument("--force-hz", type=float, default=1000.0, help="WrenchStamped rate (default 1000 Hz)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, alternating; medians are reported "
@@ -124,7 +127,8 @@ def main() -> None:
         bag = Path(tmp) / ("bench" if args.ros2 else "bench.bag")
         write_bag(bag, frames, args.ros2, args.force_hz)
         size = sum(p.stat().st_size for p in bag.rglob("*")) if bag.is_dir() else bag.stat().st_size
-        options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, workers=args.workers, progress=False)
+        options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, progress=False,
+                                 workers=args.convert_workers or args.workers)
         out = Path(tmp) / "out.mcap"
         convert_bag(bag, out, overwrite=True, options=options)  # warm-up: imports, page cache
         bare, convert = [], []
@@ -138,7 +142,8 @@ def main() -> None:
     bare_wall, bare_cpu = (statistics.median(b[i] for b in bare) for i in range(2))
     conv_wall, conv_cpu, main_cpu = (statistics.median(c[i] for c in convert) for i in range(3))
     print(f"bag: {'ROS 2 sqlite3' if args.ros2 else 'ROS 1'}, {n} stereo frames bgr8 {WIDTH}x{HEIGHT}, "
-          f"{size / 1e6:.0f} MB, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; {args.workers} threads; "
+          f"{size / 1e6:.0f} MB, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; {args.workers} threads "
+          f"(conversion: {options.workers}); "
           f"{os.cpu_count()} CPUs, load average {load:.1f}")
     for i, ((bw, bc), (cw, cc, mc)) in enumerate(zip(bare, convert, strict=True)):
         print(f"  run {i}: bare {bw:.2f} s wall, {bc:.2f} s CPU | conversion {cw:.2f} s wall, {cc:.2f} s CPU "
