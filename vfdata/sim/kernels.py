@@ -188,23 +188,18 @@ def _zbuffer(uv: np.ndarray, quads: np.ndarray, drawn: np.ndarray, coef: np.ndar
 @njit(**_JIT)
 def _collect(ids: np.ndarray, inv_z: np.ndarray, x0: int, y0: int, width: int):
     """The covered pixels of a z-buffer in row-major order: flat image indices, depth (mm), x, y,
-    triangle; and the box (x0, y0, x1, y1, exclusive) holding them."""
+    triangle; and the box (x0, y0, x1, y1, exclusive) holding them. One pass, into arrays sized for a
+    full buffer (allocating is free; a counting pass first would cost as much as this one)."""
     h, w = ids.shape
-    count = 0
+    flat = np.empty(h * w, np.int64)
+    depth = np.empty(h * w, np.float32)
+    fx = np.empty(h * w, np.float32)
+    fy = np.empty(h * w, np.float32)
+    tri = np.empty(h * w, np.int64)
     bx0, by0, bx1, by1 = w, h, -1, -1
-    for y in range(h):
-        for x in range(w):
-            if ids[y, x] >= 0:
-                count += 1
-                bx0, bx1 = min(bx0, x), max(bx1, x)
-                by0, by1 = min(by0, y), max(by1, y)
-    flat = np.empty(count, np.int64)
-    depth = np.empty(count, np.float32)
-    fx = np.empty(count, np.float32)
-    fy = np.empty(count, np.float32)
-    tri = np.empty(count, np.int64)
     n = 0
     for y in range(h):
+        row_start = n
         for x in range(w):
             t = ids[y, x]
             if t >= 0:
@@ -214,8 +209,39 @@ def _collect(ids: np.ndarray, inv_z: np.ndarray, x0: int, y0: int, width: int):
                 fy[n] = y + y0
                 tri[n] = t
                 n += 1
-    box = (bx0 + x0, by0 + y0, bx1 + x0 + 1, by1 + y0 + 1) if count else (0, 0, 0, 0)
-    return flat, depth, fx, fy, tri, box
+        if n > row_start:
+            by0 = min(by0, y)
+            by1 = y
+            bx0 = min(bx0, int(fx[row_start]) - x0)
+            bx1 = max(bx1, int(fx[n - 1]) - x0)
+    box = (bx0 + x0, by0 + y0, bx1 + x0 + 1, by1 + y0 + 1) if n else (0, 0, 0, 0)
+    return flat[:n], depth[:n], fx[:n], fy[:n], tri[:n], box
+
+
+@njit(**_JIT)
+def select(keep: np.ndarray, flat: np.ndarray, depth: np.ndarray, px: np.ndarray, py: np.ndarray,
+           tri: np.ndarray):
+    """The fragments (flat, depth, x, y, triangle) where `keep` (P,) is true: a third of the time of
+    five boolean selections in numpy."""
+    count = 0
+    for i in range(len(keep)):
+        if keep[i]:
+            count += 1
+    out_flat = np.empty(count, flat.dtype)
+    out_depth = np.empty(count, depth.dtype)
+    out_px = np.empty(count, px.dtype)
+    out_py = np.empty(count, py.dtype)
+    out_tri = np.empty(count, tri.dtype)
+    n = 0
+    for i in range(len(keep)):
+        if keep[i]:
+            out_flat[n] = flat[i]
+            out_depth[n] = depth[i]
+            out_px[n] = px[i]
+            out_py[n] = py[i]
+            out_tri[n] = tri[i]
+            n += 1
+    return out_flat, out_depth, out_px, out_py, out_tri
 
 
 @njit(**_JIT)

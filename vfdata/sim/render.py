@@ -205,8 +205,10 @@ class Fragments:
     values: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> Fragments:
-        return Fragments(self.flat[keep], self.depth[keep], self.px[keep], self.py[keep], self.tri[keep],
-                         self.drawn, self.coef, self.box, None if self.values is None else self.values[:, keep])
+        """The fragments where `keep` (P,) bool is true (the box is kept: it still holds them)."""
+        picked = kernels.select(keep, self.flat, self.depth, self.px, self.py, self.tri)
+        values = None if self.values is None else self.values[:, keep]
+        return Fragments(*picked, self.drawn, self.coef, self.box, values)
 
     def interpolate(self) -> Fragments:
         self.values = kernels.interpolate(self.coef, self.tri, self.px, self.py, self.depth)
