@@ -5,8 +5,9 @@ Each kernel is one loop over the pixels (or triangles) that does in one pass wha
 array passes for. They run single-threaded (a synthesis worker is one process per core) and in a fixed
 order, so their output is the same from run to run. `cache=True` stores the machine code beside this
 file (or, where that is not writable, in numba's per-user cache), so only the first process ever
-compiles; later processes load it in milliseconds. `error_model="numpy"`: a division by zero gives
-inf / nan as in numpy instead of raising (and the loops need no check for it).
+compiles; later processes load it in a fraction of a second. `error_model="numpy"`: a division by
+zero gives inf / nan as in numpy instead of raising (and the loops need no check for it). `nogil`: a
+kernel lets the synthesis' encoder thread run beside it.
 
 Conventions: pixel (x, y) has its centre at image coordinates (x, y); vertex coordinates are in the
 camera frame (x right, y down, z forward, mm).

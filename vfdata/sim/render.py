@@ -184,7 +184,6 @@ def box_mesh(centre: np.ndarray, axes: np.ndarray, half: np.ndarray, material: f
                 np.zeros((24, 0)), np.full((6, 1), material))
 
 
-
 # --- rasterisation ---------------------------------------------------------------------------------
 
 
