@@ -441,12 +441,16 @@ def shade_combine(albedo: np.ndarray, terms: np.ndarray, lobe: np.ndarray, gloss
 
 @njit(**_JIT)
 def tone_map(linear: np.ndarray, lut: np.ndarray, scale: float) -> np.ndarray:
-    """Display values (3, P) uint8 of linear radiance (3, P) by a table over [0, (len - 1) / scale]."""
+    """Display values (3, P) uint8 of linear radiance (3, P) by a table over [0, (len - 1) / scale].
+    Clamped with selects, not branches (nan goes to 0), so that the loop runs on SIMD lanes."""
     out = np.empty(linear.shape, np.uint8)
-    top = len(lut) - 1
+    top = np.float32(len(lut) - 1)
+    scale32 = np.float32(scale)
+    zero = np.float32(0.0)
     for c in range(linear.shape[0]):
         for i in range(linear.shape[1]):
-            x = linear[c, i] * scale
-            idx = int(x) if x > 0 else 0  # (nan too)
-            out[c, i] = lut[min(idx, top)]
+            x = linear[c, i] * scale32
+            x = x if x > zero else zero
+            x = x if x < top else top
+            out[c, i] = lut[np.int32(x)]
     return out
