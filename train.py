@@ -25,6 +25,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from vfdata.errors import InputError, VisionForceError
+from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
 from vfmodels.regressor import ForceRegressor
 
@@ -63,6 +64,8 @@ class ForceCLI(LightningCLI):
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
         parser.add_lightning_class_args(ForceEstimateWriter, "prediction_writer")
+        # time/epoch_s and time/epoch_cpu_s in the logs (a run's wall time survives resuming).
+        parser.add_lightning_class_args(EpochTimer, "epoch_timer")
         parser.set_defaults({
             "checkpoint.monitor": "val/loss",
             "checkpoint.mode": "min",

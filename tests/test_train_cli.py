@@ -27,6 +27,18 @@ def test_fast_dev_run(tmp_path):
     train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.fast_dev_run=true"])
 
 
+def test_epoch_times_are_logged(tmp_path):
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.max_epochs=2",
+                "--checkpoint.save_last=false"])
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "csv" / "version_0" / "metrics.csv").open()))
+    epochs = [(int(r["epoch"]), float(r["time/epoch_s"]), float(r["time/epoch_cpu_s"]))
+              for r in rows if r.get("time/epoch_s")]
+    assert [e for e, _, _ in epochs] == [0, 1]
+    assert all(0 < wall < 60 and 0 < cpu < 120 for _, wall, cpu in epochs)
+
+
 @pytest.mark.slow
 def test_fit_then_test_and_predict_best(tmp_path, capsys):
     run = [*SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'run'}"]
