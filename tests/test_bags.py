@@ -595,9 +595,10 @@ def test_bulk_series_decoding_matches_deserialisation(tmp_path, ros2):
         for topic, width in (("/netft_data", 6), ("/pose", 7)):
             raws = [m for _, m in iterated(reader, topic)]
             first_frame = raws[:100]  # frame "ati" (WrenchStamped) / "ECM_base" (PoseStamped) only
-            stamps, values = bags._decode_fixed_batch(first_frame, width, ros2)
+            stamps, values, frame_id = bags._decode_fixed_batch(first_frame, width, ros2)
             messages = [reader.deserialize(raw, reader.topics[topic].msgtype) for raw in first_frame]
             assert stamps.tolist() == [bags.header_stamp_ns(m) for m in messages]
+            assert frame_id == messages[0].header.frame_id == ("ati" if width == 6 else "ECM_base")
             fields = [(m.wrench.force, m.wrench.torque) if width == 6 else bags._pose_fields(m) for m in messages]
             expect = [[v.x, v.y, v.z] + ([v.w] if hasattr(v, "w") else []) for f in fields for v in f]
             assert values.ravel().tolist() == [x for row in expect for x in row]
@@ -689,3 +690,19 @@ def test_write_payloads_equals_one_write_per_message(tmp_path):
         assert (tmp_path / "one.mcap").read_bytes() == (tmp_path / "bulk.mcap").read_bytes()
         force = raw_messages(tmp_path / "bulk.mcap")["/f"]
         assert force == [(int(t), row.tobytes()) for t, row in zip(stamps, table, strict=True)]
+
+
+def test_ros2_camera_info_read_without_rosbags_matches_it(tmp_path):
+    write_bag(tmp_path / "b", BagSpec(ros2=True, frames=2))
+    with bags.open_bag(tmp_path / "b") as reader:
+        connection = next(c for c in reader.connections if c.topic == "/jhu_daVinci/right/camera_info")
+        raw = iterated(reader, connection.topic)[0][1]
+        ours = bags._first_camera_info(reader, tmp_path / "b", raw, connection)
+        theirs = reader.deserialize(raw, connection.msgtype)
+        assert isinstance(ours, CameraInfo) and not isinstance(theirs, CameraInfo)
+        a, b = (bags.bag_camera_info(tmp_path / "b", connection.topic, m, layout.RIGHT_FRAME) for m in (ours, theirs))
+        for name in ("frame_id", "height", "width", "distortion_model", "binning_x", "binning_y", "roi"):
+            assert getattr(a, name) == getattr(b, name), name
+        for name in ("d", "k", "r", "p"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert a.p[0, 3] == -FX * BASELINE_M

@@ -374,16 +374,22 @@ class _SqliteBag(IndexedBag):
                 # Pages through a memory map: an image spans hundreds of pages, one read() each otherwise.
                 db.execute("PRAGMA mmap_size = 1099511627776")
                 connections.append(db)
+            # One query per file for all the topics (a query per topic scanned the messages once each).
+            parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
+            for index, db in enumerate(connections):
+                ids = {topic_id: name for topic_id, name in db.execute("SELECT id, name FROM topics")
+                       if name in topics}
+                if not ids:
+                    continue
+                rows = db.execute(f"SELECT timestamp, id, topic_id FROM messages WHERE topic_id IN "
+                                  f"({','.join('?' * len(ids))}) ORDER BY timestamp, id", list(ids)).fetchall()
+                table = np.array(rows, np.int64).reshape(-1, 3)
+                for topic_id, name in ids.items():
+                    mine = table[table[:, 2] == topic_id]
+                    parts[name].append(np.column_stack([mine[:, 0], np.full(len(mine), index), mine[:, 1]]))
             refs = {}
-            for topic in topics:
-                parts = []
-                for index, db in enumerate(connections):
-                    rows = db.execute("SELECT messages.timestamp, messages.id FROM messages JOIN topics ON "
-                                      "messages.topic_id = topics.id WHERE topics.name = ? "
-                                      "ORDER BY messages.timestamp, messages.id", (topic,)).fetchall()
-                    table = np.array(rows, np.int64).reshape(-1, 2)
-                    parts.append(np.column_stack([table[:, 0], np.full(len(table), index), table[:, 1]]))
-                table = np.concatenate(parts)
+            for topic, found in parts.items():
+                table = np.concatenate(found) if found else np.zeros((0, 3), np.int64)
                 table = table[np.argsort(table[:, 0], kind="stable")]
                 refs[topic] = (table[:, 0], table[:, 1], table[:, 2])
         except BaseException:

@@ -410,7 +410,7 @@ class BagScan:
     right: ImageStream
     force: Series
     pose: Series | None
-    left_info: object | None  # the first rosbags CameraInfo message of each side
+    left_info: object | None  # the first CameraInfo message of each side (vfdata's or rosbags')
     right_info: object | None
     indexed: IndexedBag | None = None  # random access to the messages, where the storage allows it
 
@@ -507,8 +507,20 @@ def _scan_indexed(reader: AnyReader, path: Path, indexed: IndexedBag, topics: se
         for receive_ns, payloads in indexed.payload_blocks(topic):
             reader_of.add_block(connection_of[topic], receive_ns, payloads)
             bar.update(len(receive_ns))
-    first_infos = {topic: load(topic, 0) for topic in infos if len(receive[topic])}
+    first_infos = {topic: _first_camera_info(reader, path, bytes(indexed.message(topic, 0)), connection_of[topic])
+                   for topic in infos if len(receive[topic])}
     return receive, first_infos
+
+
+def _first_camera_info(reader: AnyReader, path: Path, raw: bytes, connection):
+    """A camera info message: a vfdata CameraInfo from little-endian CDR (ROS 2; compiling rosbags'
+    deserialiser for this one message cost ~13 ms a bag), else rosbags' message."""
+    if reader.is2:
+        try:
+            return CameraInfo.decode(raw)
+        except (CdrError, UnicodeDecodeError, ValueError):
+            pass  # e.g. big-endian CDR: rosbags reads it, or says what is wrong
+    return _deserialize(reader, path, raw, connection)
 
 
 def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[object, int, bytes]]:
@@ -612,15 +624,16 @@ class _SeriesReader:
             self._decode(raws)
 
     def _decode(self, payloads: np.ndarray | list[bytes]) -> None:
-        first = _deserialize(self.reader, self.path, bytes(payloads[0]), self._connection)
         decoded = None
-        if hasattr(first, "wrench") or hasattr(first, "pose"):
+        # By the connection's type, not a deserialised first message: compiling rosbags' deserialiser
+        # for it cost ~8 ms a bag.
+        if self._connection.msgtype in (WRENCH_STAMPED, POSE_STAMPED):
             decoded = _decode_fixed_batch(payloads, self.width, self.ros2)
         if decoded is not None:
-            stamps, values = decoded
+            stamps, values, frame_id = decoded
             self.header.frombytes(stamps.astype(np.int64).tobytes())
             self.values.frombytes(np.ascontiguousarray(values, np.float64).tobytes())
-            self.frames.add(first.header.frame_id)
+            self.frames.add(frame_id)
             return
         for raw in payloads:
             msg = _deserialize(self.reader, self.path, bytes(raw), self._connection)
@@ -652,10 +665,10 @@ class _SeriesReader:
 
 
 def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2: bool,
-                        ) -> tuple[np.ndarray, np.ndarray] | None:
+                        ) -> tuple[np.ndarray, np.ndarray, str] | None:
     """Header stamps (N,) and values (N, n_doubles) of messages that are a std_msgs/Header and then
-    `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes); None when they
-    do not fit that layout."""
+    `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes), and their one
+    frame_id; None when they do not fit that layout."""
     if isinstance(payloads, list):
         length = len(payloads[0])
         if any(len(raw) != length for raw in payloads):
@@ -669,18 +682,23 @@ def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2
     name = slice(12, 16 + name_length)
     if length < 16 or 16 + name_length > length or (table[:, name] != table[0, name]).any():
         return None
+    try:  # CDR strings end with a NUL that ROS 1 strings do not have
+        frame_id = table[0, 16:16 + name_length].tobytes().rstrip(b"\0").decode("utf-8")
+    except UnicodeDecodeError:
+        return None
     if ros2:
         try:
-            return (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
+            stamps, values = (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
         except CdrError:
             return None
+        return stamps, values, frame_id
     # ROS 1: uint32 seq, uint32 sec, uint32 nsec, uint32 length + frame_id, float64s (no alignment).
     if 16 + name_length + 8 * n_doubles != length:
         return None
     sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
     nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
     values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * _NS + nanosec, values
+    return sec * _NS + nanosec, values, frame_id
 
 
 # -- pairing --------------------------------------------------------------------------------------
@@ -755,17 +773,21 @@ def _span(stamps: np.ndarray) -> str:
 
 # -- camera model ---------------------------------------------------------------------------------
 def bag_camera_info(path: Path, topic: str, msg, frame_id: str) -> CameraInfo:
-    """A rosbags CameraInfo message (ROS 1 names D K R P or ROS 2 names d k r p) in the layout's frame."""
+    """A CameraInfo message (a vfdata CameraInfo, or rosbags' with ROS 1 names D K R P or ROS 2 names
+    d k r p) in the layout's frame."""
 
     def values(name: str) -> np.ndarray:
         return np.asarray(getattr(msg, name) if hasattr(msg, name) else getattr(msg, name.upper()), np.float64)
 
-    roi = msg.roi
+    if isinstance(msg, CameraInfo):
+        roi = msg.roi
+    else:
+        roi = (int(msg.roi.x_offset), int(msg.roi.y_offset), int(msg.roi.height), int(msg.roi.width),
+               bool(msg.roi.do_rectify))
     info = CameraInfo(
         0, frame_id, int(msg.height), int(msg.width), msg.distortion_model or "plumb_bob", values("d"),
         values("k").reshape(3, 3), values("r").reshape(3, 3), values("p").reshape(3, 4),
-        int(msg.binning_x), int(msg.binning_y),
-        (int(roi.x_offset), int(roi.y_offset), int(roi.height), int(roi.width), bool(roi.do_rectify)),
+        int(msg.binning_x), int(msg.binning_y), roi,
     )
     if not (np.isfinite(info.p).all() and info.p[0, 0] > 0 and info.p[1, 1] > 0):
         raise InputError(path, f"{topic}: P has no focal length (camera not calibrated); pass --calibration FILE")
