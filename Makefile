@@ -3,6 +3,9 @@ PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# PyTorch 2.14.1 is a CUDA build: with its libraries a new venv takes about 7.5 GB.
+MIN_FREE_KB ?= 8000000
+VENV_DIR = $(dir $(abspath $(VENV)))
 
 .PHONY: setup quickstart test lint bench
 
@@ -10,6 +13,8 @@ $(STAMP): pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
 		(apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null || \
 		echo "warning: could not install libusb-1.0-0 (open3d needs it)"; fi
+	@test -x $(BIN)/python || [ $$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}') -ge $(MIN_FREE_KB) ] || \
+		{ echo "error: $(VENV_DIR): a new $(VENV) needs about 8 GB free (PyTorch and its CUDA libraries), $$(df -Ph $(VENV_DIR) | awk 'NR==2 {print $$4}') free"; exit 1; }
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q torch==2.14.1 torchvision==0.29.1
