@@ -167,6 +167,29 @@ def test_mcap_library_reads_and_validates_ours(raw, converted_png):
     assert sum(type(r).__name__ == "Message" for r in records) == summary.statistics.message_count
 
 
+def test_writer_takes_payloads_as_views_and_arrays(tmp_path):
+    """A record's length is that of the bytes written, whatever object carries them (len() of a
+    float64 view or a 2-D array counts items, not bytes), and a buffer reused after the call does not
+    change what was written."""
+    from mcap.reader import make_reader
+
+    from vfdata.recording.writer import McapWriter
+
+    values = np.arange(10, dtype=np.float64)
+    table = np.arange(24, dtype=np.uint8).reshape(4, 6)
+    buffer = bytearray(b"abcdef")
+    payloads = [memoryview(values), table, buffer, b"plain"]
+    expected = [values.tobytes(), table.tobytes(), b"abcdef", b"plain"]
+    out = tmp_path / "views.mcap"
+    with McapWriter(out) as writer:
+        for i, payload in enumerate(payloads):
+            writer.write_payload("/test", "sensor_msgs/msg/CompressedImage", 1_000 + i, payload)
+        buffer[:] = b"XXXXXX"
+    with open(out, "rb") as f:
+        got = [m.data for _, _, m in make_reader(f, validate_crcs=True).iter_messages()]
+    assert got == expected
+
+
 def test_force_at_interpolates_and_respects_gaps(converted_png):
     rec = Recording.open(converted_png)
     t = rec.force.times_ns

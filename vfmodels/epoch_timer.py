@@ -1,11 +1,16 @@
 """`EpochTimer`: logs how long each training epoch took, so that a run's wall time can be read from
 its own logs even after it was interrupted and resumed (the resumed process only sees its part).
 
-Logged once per epoch (CSV and TensorBoard, x axis = epoch):
+Logged once per epoch (CSV and TensorBoard, against the global step like every epoch-level metric;
+the CSV also has the epoch):
 - `time/epoch_s`: wall seconds from the start of the epoch's training to the end of its validation;
 - `time/epoch_cpu_s`: this process's CPU seconds over the same span (user + system, all threads).
   CPU seconds over the thread count is what the epoch would take on an otherwise idle machine; a
-  wall figure well above it means other work shared the cores.
+  wall figure well above it means other work shared the cores. DataLoader worker processes
+  (`num_workers > 0`) are not counted.
+Not in any epoch: start-up, the sanity check, testing, and an epoch that a resume re-entered in the
+middle (Lightning skips its start hook); so summed epoch times are a lower bound of a run's wall time.
+With several processes (DDP) rank 0's times are logged.
 """
 
 from __future__ import annotations
@@ -30,5 +35,6 @@ class EpochTimer(Callback):
             return
         wall = time.perf_counter() - self._wall_start
         cpu = time.process_time() - self._cpu_start
-        pl_module.log_dict({"time/epoch_s": wall, "time/epoch_cpu_s": cpu}, on_step=False, on_epoch=True)
+        pl_module.log_dict({"time/epoch_s": wall, "time/epoch_cpu_s": cpu}, on_step=False, on_epoch=True,
+                          rank_zero_only=True)
         self._wall_start = None

@@ -28,8 +28,11 @@ import numpy as np
 import zstandard
 
 # ISA-L's CRC-32 (zlib's polynomial and values) runs at ~17 GB/s here, zlib 1.2.13's at 1.7 GB/s: at
-# 30 stereo frames/s of JPEGs the chunk CRCs cost 0.26 ms a frame with zlib.
-from isal.isal_zlib import crc32
+# 30 stereo frames/s of JPEGs the chunk CRCs cost 0.26 ms a frame with zlib. Same values either way.
+try:
+    from isal.isal_zlib import crc32
+except ImportError:  # a platform without an isal wheel
+    from zlib import crc32
 
 from vfdata import __version__
 from vfdata.atomic import atomic_output
@@ -97,9 +100,10 @@ class _Chunk:
 
     def add(self, channel_id: int, sequence: int, log_time: int, payload: bytes | memoryview) -> None:
         offset = self.size
-        head = _MESSAGE_HEAD.pack(OP_MESSAGE, 22 + len(payload), channel_id, sequence, log_time, log_time)
         # bytes are kept as they are; a view or bytearray is copied, its owner may reuse the memory.
         data = payload if type(payload) is bytes else bytes(payload)
+        # The length of what is written: len() of a view of float64s or of a 2-D array counts items.
+        head = _MESSAGE_HEAD.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, log_time)
         self.parts += (head, data)
         self.size += len(head) + len(data)
         self.index.setdefault(channel_id, []).append((log_time, offset))
