@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -187,3 +188,41 @@ def test_tracked_points_plot(tmp_path):
     path = reports.plot_tracked_points(image, {"geometry": (uv, np.ones(64, bool)),
                                                "klt": (lost, np.arange(64) % 2 == 0)}, tmp_path / "fig6.png", mask)
     assert _is_png(path)
+
+
+def _write_log(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True)
+    columns = ["epoch", "step", *reports.EPOCH_COLUMNS]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, columns)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_epoch_curves_join_resumed_versions(tmp_path):
+    """A run resumed in epoch 2 logs epoch 2 again in its next version (the later value counts); the
+    versions are taken by number (version_10 after version_2); step rows without epoch values and
+    columns that were not logged give NaN."""
+    run = tmp_path / "runs" / "proposed" / "seed0"
+    _write_log(run / "csv" / "version_0" / "metrics.csv", [
+        {"epoch": 0, "step": 9},  # a step row: no epoch values
+        {"epoch": 0, "step": 10, "train/loss_epoch": 0.9, "time/epoch_s": 60.0},
+        {"epoch": 0, "step": 10, "val/loss": 0.8},
+        {"epoch": 1, "step": 20, "train/loss_epoch": 0.7, "val/loss": 0.6, "time/epoch_s": 50.0},
+        {"epoch": 2, "step": 30, "train/loss_epoch": 0.65},  # interrupted before validation
+    ])
+    _write_log(run / "csv" / "version_2" / "metrics.csv", [
+        {"epoch": 2, "step": 30, "train/loss_epoch": 0.5, "val/loss": 0.4, "time/epoch_s": 40.0},
+    ])
+    _write_log(run / "csv" / "version_10" / "metrics.csv", [
+        {"epoch": 3, "step": 40, "train/loss_epoch": 0.45, "val/loss": 0.5, "time/epoch_s": 41.0},
+    ])
+    curves = reports.read_epoch_curves(run)
+    assert curves["epoch"].tolist() == [0, 1, 2, 3]
+    assert curves["train/loss_epoch"].tolist() == [0.9, 0.7, 0.5, 0.45]
+    assert curves["val/loss"].tolist() == [0.8, 0.6, 0.4, 0.5]
+    assert curves["time/epoch_s"].tolist() == [60.0, 50.0, 40.0, 41.0]
+    assert np.isnan(curves["time/epoch_cpu_s"]).all()
+    path = reports.plot_training_curves({"proposed seed0": curves}, tmp_path / "curves.png", title="test")
+    assert _is_png(path)
+    assert reports.read_epoch_curves(tmp_path / "empty")["epoch"].tolist() == []

@@ -280,6 +280,44 @@ def timing_table_markdown(stage_fps: Mapping[str, float], extra_stages: Sequence
     return "\n".join(lines) + "\n"
 
 
+# ---- training logs -------------------------------------------------------------------------------
+
+EPOCH_COLUMNS = ("train/loss_epoch", "val/loss", "time/epoch_s", "time/epoch_cpu_s")
+
+
+def epoch_curves(log_tables: Sequence[Sequence[Mapping[str, str]]]) -> dict[str, np.ndarray]:
+    """Per-epoch values of a run from its Lightning CSV logs (`csv/version_N/metrics.csv`, rows as
+    `csv.DictReader` gives them), oldest version first: a resumed run writes a new version that
+    repeats the epoch it resumed in, and the later value wins. Returns {"epoch": (E,) int, and each
+    of EPOCH_COLUMNS: (E,) float, NaN where not logged}; losses are normalised MSE, times seconds."""
+    values: dict[int, dict[str, float]] = {}
+    for rows in log_tables:
+        for row in rows:
+            if not row.get("epoch"):
+                continue
+            epoch = int(float(row["epoch"]))
+            for column in EPOCH_COLUMNS:
+                if row.get(column):
+                    values.setdefault(epoch, {})[column] = float(row[column])
+    epochs = sorted(values)
+    curves = {"epoch": np.asarray(epochs, dtype=np.int64)}
+    for column in EPOCH_COLUMNS:
+        curves[column] = np.array([values[e].get(column, np.nan) for e in epochs], dtype=np.float64)
+    return curves
+
+
+def read_epoch_curves(run_dir: str | Path) -> dict[str, np.ndarray]:
+    """`epoch_curves` of a run folder (every `csv/version_N/metrics.csv` under it, by N)."""
+    def version(path: Path) -> int:
+        return int(path.parent.name.rpartition("_")[2] or 0)
+
+    tables = []
+    for path in sorted(Path(run_dir).glob("csv/version_*/metrics.csv"), key=version):
+        with open(path, newline="") as f:
+            tables.append(list(csv.DictReader(f)))
+    return epoch_curves(tables)
+
+
 # ---- plots ---------------------------------------------------------------------------------------
 
 
@@ -389,6 +427,33 @@ def plot_force_distributions(train_n: np.ndarray, test_n: np.ndarray, path: str 
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
+    return save_figure(fig, path)
+
+
+def plot_training_curves(curves: Mapping[str, Mapping[str, np.ndarray]], path: str | Path, title: str = "") -> Path:
+    """Training and validation loss (normalised MSE) against the epoch, one colour per run
+    ({label: `epoch_curves` result}); a dot marks each run's best validation epoch, the checkpoint
+    that testing uses. The legend gives the epochs and the summed epoch wall time."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    for k, (label, run) in enumerate(curves.items()):
+        colour = f"C{k % 10}"
+        epochs = np.asarray(run["epoch"])
+        minutes = np.nansum(run["time/epoch_s"]) / 60.0
+        ax.plot(epochs, run["train/loss_epoch"], color=colour, alpha=0.5, linestyle="--")
+        val = np.asarray(run["val/loss"], dtype=np.float64)
+        ax.plot(epochs, val, color=colour, label=f"{label}: {len(epochs)} epochs, {minutes:.0f} min")
+        if np.isfinite(val).any():
+            best = int(np.nanargmin(val))
+            ax.plot(epochs[best], val[best], "o", color=colour)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss (normalised MSE)")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3, which="both")
+    ax.plot([], [], color="grey", linestyle="--", alpha=0.5, label="training (dashed)")
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
     return save_figure(fig, path)
 
 
