@@ -64,6 +64,27 @@ def test_checkpoint_reload_reproduces_predictions(tmp_path):
     assert via_lightning[0]["force_n"][..., 2].mean() > 0.5
 
 
+def test_compiled_regressor_saves_and_loads_plain_state_dicts(tmp_path):
+    """`compile_model=True` wraps the model for speed only: the state dict (and so every checkpoint)
+    has the same keys as without it, and checkpoints written by compiled training before that fix,
+    which held every weight a second time under `_compiled._orig_mod.`, still load."""
+    torch.manual_seed(0)
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6, dim=32, lstm_hidden=48), compile_model=True)
+    regressor.trainer = trainer(tmp_path, 1)  # setup() looks for the datamodule's statistics
+    regressor.setup("fit")  # wraps the model; torch.compile compiles only at the first call
+    assert regressor._compiled is not None
+    plain = ForceRegressor(SetTransformerLSTM(in_features=6, dim=32, lstm_hidden=48))
+    assert list(regressor.state_dict()) == list(plain.state_dict())
+
+    doubled = dict(regressor.state_dict())
+    doubled.update({f"_compiled._orig_mod.{k[len('model.'):]}": v for k, v in regressor.state_dict().items()
+                    if k.startswith("model.")})
+    plain.load_state_dict(doubled)  # strict
+    x = torch.randn(2, 4, 16, 6)
+    with torch.no_grad():
+        torch.testing.assert_close(plain.model(x, None), regressor.model(x, None))
+
+
 def test_normalisation_applies_and_checks():
     regressor = ForceRegressor(SetTransformerLSTM(in_features=2))
     regressor.set_normalisation([1.0, 2.0], [2.0, 4.0], [0.0, 0.0, 10.0], [1.0, 1.0, 5.0])

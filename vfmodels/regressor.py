@@ -28,6 +28,7 @@ from vfdata.errors import InputError
 from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
+COMPILED_PREFIX = "_compiled."
 
 
 class ForceRegressor(L.LightningModule):
@@ -56,6 +57,9 @@ class ForceRegressor(L.LightningModule):
     # ---- normalisation -------------------------------------------------------------------------
 
     def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
+        # Checkpoints written by compiled training before the fix above hold the weights twice.
+        for key in [k for k in state_dict if k.startswith(prefix + COMPILED_PREFIX)]:
+            del state_dict[key]
         for name in STAT_NAMES:
             if prefix + name in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[prefix + name], device=self.force_mean.device))
@@ -79,7 +83,9 @@ class ForceRegressor(L.LightningModule):
         if stats is not None and (stage == "fit" or self.force_mean.numel() == 0):
             self.set_normalisation(**stats)
         if self.hparams.compile_model and self._compiled is None:
-            self._compiled = torch.compile(self.model)
+            # Set past nn.Module's bookkeeping: as a submodule the wrapper would put a second copy of
+            # every weight in the state dict ("_compiled._orig_mod.*") and break strict loading.
+            object.__setattr__(self, "_compiled", torch.compile(self.model))
 
     def normalise_input(self, x: torch.Tensor) -> torch.Tensor:
         if self.input_mean.numel() == 0:
