@@ -21,10 +21,10 @@ from pathlib import Path
 
 import torch
 from lightning.pytorch import LightningDataModule
-from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from vfdata.errors import InputError, VisionForceError
+from vfmodels.checkpoint import ResumableCheckpoint
 from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
 from vfmodels.regressor import ForceRegressor
@@ -38,7 +38,8 @@ def best_checkpoint(dirpath: str | Path) -> Path:
     if last.is_file():
         state = torch.load(last, map_location="cpu", weights_only=True)
         for key, value in state.get("callbacks", {}).items():
-            if key.startswith("ModelCheckpoint") and value.get("best_model_path"):
+            # "ModelCheckpoint{...}" in runs from before ResumableCheckpoint.
+            if key.startswith(("ModelCheckpoint", "ResumableCheckpoint")) and value.get("best_model_path"):
                 best = Path(value["best_model_path"])
                 if best.is_file():
                     return best
@@ -60,8 +61,8 @@ def best_checkpoint(dirpath: str | Path) -> Path:
 
 class ForceCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
-        # Keep the checkpoint with the lowest validation loss (and the last one, for resuming).
-        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        # Keep the checkpoint with the lowest validation loss, and last.ckpt after every epoch for resuming.
+        parser.add_lightning_class_args(ResumableCheckpoint, "checkpoint")
         # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
         parser.add_lightning_class_args(ForceEstimateWriter, "prediction_writer")
         # time/epoch_s and time/epoch_cpu_s in the logs (a run's wall time survives resuming).

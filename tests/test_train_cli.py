@@ -39,6 +39,18 @@ def test_epoch_times_are_logged(tmp_path):
     assert all(0 < wall < 60 and 0 < cpu < 120 for _, wall, cpu in epochs)
 
 
+def test_last_checkpoint_follows_every_epoch(tmp_path):
+    """last.ckpt must hold the latest epoch even when the best one is early (Lightning's own save_last
+    only rewrites it with a new best), or resuming would repeat every epoch after the best one. With
+    lr = 0 the validation loss never improves after epoch 0."""
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.max_epochs=3",
+                "--model.lr=0"])
+    checkpoints = tmp_path / "checkpoints"
+    assert torch.load(checkpoints / "last.ckpt", weights_only=True)["epoch"] == 2
+    best = train.best_checkpoint(checkpoints)
+    assert best.name.startswith("epoch000") and torch.load(best, weights_only=True)["epoch"] == 0
+
+
 @pytest.mark.slow
 def test_fit_then_test_and_predict_best(tmp_path, capsys):
     run = [*SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'run'}"]
