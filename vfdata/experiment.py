@@ -543,8 +543,8 @@ def _figures(out: Path, entries: list[Entry], trackers: list[str], dataset: str)
         paths["fig7"] = reports.plot_force_curves(predictions, out / "fig7_force_curves.png",
                                                   title=f"{dataset}: proposed model, test orientations")
     curves = {f"{run.parent.name} {run.name}": reports.read_epoch_curves(run)
-              for run in sorted((out / "runs").glob("*/seed*")) if any(run.glob("csv/version_*/metrics.csv"))}
-    curves = {label: c for label, c in curves.items() if len(c["epoch"])}
+              for run in sorted((out / "runs").glob("*/seed*"))}
+    curves = {label: c for label, c in curves.items() if len(c["epoch"])}  # runs without logs yet
     if curves:
         paths["training"] = reports.plot_training_curves(curves, out / "fig_training_curves.png",
                                                          title=f"{dataset}: loss per epoch")

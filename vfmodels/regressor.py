@@ -50,16 +50,20 @@ class ForceRegressor(L.LightningModule):
             self.register_buffer(name, torch.empty(0))
         # Buffers start empty; a checkpoint's statistics replace them whatever their shape.
         self.register_load_state_dict_pre_hook(self._adopt_stat_shapes)
+        self.register_load_state_dict_pre_hook(self._drop_compiled_copies)
         self._compiled = None
         self._outputs: dict[str, list] = {}
         self.test_results: dict[str, Any] | None = None
 
     # ---- normalisation -------------------------------------------------------------------------
 
-    def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
-        # Checkpoints written by compiled training before the fix above hold the weights twice.
+    def _drop_compiled_copies(self, module, state_dict, prefix, *args) -> None:
+        # Checkpoints of compiled training from before `setup` kept the wrapper out of the module tree
+        # hold every weight a second time under "_compiled._orig_mod.".
         for key in [k for k in state_dict if k.startswith(prefix + COMPILED_PREFIX)]:
             del state_dict[key]
+
+    def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
         for name in STAT_NAMES:
             if prefix + name in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[prefix + name], device=self.force_mean.device))
