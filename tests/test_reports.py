@@ -226,3 +226,21 @@ def test_epoch_curves_join_resumed_versions(tmp_path):
     path = reports.plot_training_curves({"proposed seed0": curves}, tmp_path / "curves.png", title="test")
     assert _is_png(path)
     assert reports.read_epoch_curves(tmp_path / "empty")["epoch"].tolist() == []
+    assert reports.training_summary(curves) == {"epochs": 4, "best_epoch": 2}
+    no_validation = {"epoch": np.array([0, 1]), "val/loss": np.array([np.nan, np.nan])}
+    assert reports.training_summary(no_validation) == {"epochs": 2, "best_epoch": None}
+
+
+def test_tables_say_how_long_each_model_trained():
+    """Runs of unequal length in one table (a 20-epoch ablation beside 60-epoch runs) are named with
+    their epochs and best epoch per seed; models without logs are left out of that line."""
+    runs = [reports.run_metrics(predictions(0.05, seed=s)) for s in range(2)]
+    runs[0]["training"] = {"epochs": 60, "best_epoch": 4}
+    runs[1]["training"] = {"epochs": 20, "best_epoch": None}
+    table = {"proposed": reports.aggregate_seeds(runs),
+             "camera_frame": reports.aggregate_seeds([reports.run_metrics(predictions(0.3))])}
+    text = reports.force_table_markdown(table, {"proposed": "Proposed"})
+    assert text.splitlines()[-1].endswith("one per seed): Proposed 60/20 (4/–).")
+    rows = list(csv.DictReader(io.StringIO(reports.force_table_csv(table))))
+    assert {r["epochs_best"] for r in rows if r["model"] == "proposed"} == {"60/20 (4/–)"}
+    assert {r["epochs_best"] for r in rows if r["model"] == "camera_frame"} == {""}

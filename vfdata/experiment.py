@@ -387,11 +387,16 @@ def run_experiment(manifest: str | Path, out: str | Path, options: ExperimentOpt
 
 def load_runs(out: Path) -> dict[str, list[dict]]:
     """{variant: [run_metrics result per finished seed]} from OUT/runs/*/seed*/predictions.npz, in
-    the order of VARIANTS (unknown folders last)."""
+    the order of VARIANTS (unknown folders last); each with "training" (`reports.training_summary`)
+    where the run's CSV logs are there."""
     found: dict[str, list[dict]] = {}
     for metrics_path in sorted((out / "runs").glob("*/seed*/metrics.json")):
         predictions = np.load(metrics_path.parent / "predictions.npz", allow_pickle=False)
-        found.setdefault(metrics_path.parent.parent.name, []).append(reports.run_metrics(dict(predictions)))
+        run = reports.run_metrics(dict(predictions))
+        curves = reports.read_epoch_curves(metrics_path.parent)
+        if len(curves["epoch"]):
+            run["training"] = reports.training_summary(curves)
+        found.setdefault(metrics_path.parent.parent.name, []).append(run)
     order = [n for n in ALL_VARIANTS if n in found] + sorted(set(found) - set(ALL_VARIANTS))
     return {name: found[name] for name in order}
 

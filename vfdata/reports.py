@@ -74,6 +74,9 @@ def aggregate_seeds(runs: Sequence[Mapping]) -> dict:
         "orientation_std": dict(zip(keys, spread.mean(axis=0).tolist(), strict=True)),
         "seed_std": dict(zip(keys, pooled.std(axis=0).tolist(), strict=True)),
         "seeds": len(runs),
+        # Runs of one results folder may differ in length (resumed, or re-run with another --epochs);
+        # a table must say so, or a 20-epoch ablation reads as a 60-epoch one.
+        "training": [r["training"] for r in runs if "training" in r],
     }
 
 
@@ -91,7 +94,8 @@ def _fmt(value: float, digits: int = 3) -> str:
 
 def force_table_rows(table: Mapping[str, Mapping], labels: Mapping[str, str] | None = None) -> list[dict]:
     """Long-form rows (one per model, metric and component) from {variant: aggregate_seeds(...)}:
-    model, label, metric, component, value, orientation_std, seed_std, seeds."""
+    model, label, metric, component, value, orientation_std, seed_std, seeds, epochs_best ("60 (4)":
+    epochs trained and best validation epoch per seed, empty when unknown)."""
     labels = labels or {}
     rows = []
     for variant, agg in table.items():
@@ -102,7 +106,7 @@ def force_table_rows(table: Mapping[str, Mapping], labels: Mapping[str, str] | N
                     "model": variant, "label": labels.get(variant, variant), "metric": metric,
                     "component": comp_label, "value": agg["value"][key],
                     "orientation_std": agg["orientation_std"][key], "seed_std": agg["seed_std"][key],
-                    "seeds": agg["seeds"],
+                    "seeds": agg["seeds"], "epochs_best": _epochs_text(agg) if agg.get("training") else "",
                 })
     return rows
 
@@ -125,7 +129,19 @@ def force_table_markdown(table: Mapping[str, Mapping], labels: Mapping[str, str]
     seeds = sorted({agg["seeds"] for agg in table.values()})
     lines += ["", f"Pooled over all test frames ± std across test orientations; mean over "
                   f"{'/'.join(map(str, seeds))} seed(s)."]
+    trained = [f"{labels.get(variant, variant)} {_epochs_text(agg)}" for variant, agg in table.items()
+               if agg.get("training")]
+    if trained:
+        lines.append(f"Epochs trained (best validation epoch, counted from 0 as in the checkpoint names; "
+                     f"one per seed): {'; '.join(trained)}.")
     return "\n".join(lines) + "\n"
+
+
+def _epochs_text(agg: Mapping) -> str:
+    """"60 (4)", or "60/60 (4/7)" for two seeds."""
+    runs = agg.get("training", [])
+    return (f"{'/'.join(str(t['epochs']) for t in runs)} "
+            f"({'/'.join('–' if t['best_epoch'] is None else str(t['best_epoch']) for t in runs)})")
 
 
 def force_table_csv(table: Mapping[str, Mapping], labels: Mapping[str, str] | None = None) -> str:
@@ -318,6 +334,14 @@ def read_epoch_curves(run_dir: str | Path) -> dict[str, np.ndarray]:
     return epoch_curves(tables)
 
 
+def training_summary(curves: Mapping[str, np.ndarray]) -> dict:
+    """{"epochs": epochs logged, "best_epoch": the epoch (from 0) of the lowest validation loss, the
+    checkpoint that testing uses, or None without validation} of an `epoch_curves` result."""
+    val = np.asarray(curves.get("val/loss", []), dtype=np.float64)
+    best = int(np.asarray(curves["epoch"])[np.nanargmin(val)]) if np.isfinite(val).any() else None
+    return {"epochs": len(curves["epoch"]), "best_epoch": best}
+
+
 # ---- plots ---------------------------------------------------------------------------------------
 
 
@@ -443,9 +467,9 @@ def plot_training_curves(curves: Mapping[str, Mapping[str, np.ndarray]], path: s
         ax.plot(epochs, run["train/loss_epoch"], color=colour, alpha=0.5, linestyle="--")
         val = np.asarray(run["val/loss"], dtype=np.float64)
         ax.plot(epochs, val, color=colour, label=f"{label}: {len(epochs)} epochs, {minutes:.0f} min")
-        if np.isfinite(val).any():
-            best = int(np.nanargmin(val))
-            ax.plot(epochs[best], val[best], "o", color=colour)
+        best = training_summary(run)["best_epoch"]
+        if best is not None:
+            ax.plot(best, val[epochs == best][0], "o", color=colour)
     ax.set_xlabel("epoch")
     ax.set_ylabel("loss (normalised MSE)")
     ax.set_yscale("log")
