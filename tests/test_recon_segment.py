@@ -94,6 +94,29 @@ def test_track_before_start_and_size_change():
         seg.track(cv2.resize(frame, (160, 120)))
 
 
+def test_a_diagonal_tissue_takes_its_depth_from_the_middle_of_its_box():
+    """A tissue band lying diagonally fills a quarter of its box; the rest is bed 45 mm behind it,
+    partly as pale as the tissue. The first mask must be the band: the bed's depth is the box's median,
+    which must not be taken for the tissue's (as it was: the mask then took in the pale bed)."""
+    h, w = 240, 320
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:h, 0:w]
+    band = np.abs((xx - 160) * 0.64 + (yy - 120) * 0.77) < 24  # through the centre, rising to the right
+    pale_bed = ~band & (xx > 170) & (yy > 150) & (xx < 300) & (yy < 230)
+    image = np.empty((h, w, 3), np.float32)
+    image[:] = (60, 60, 150)
+    image[band] = (190, 195, 225)
+    image[pale_bed] = (180, 188, 222)
+    image = cv2.GaussianBlur(np.clip(image + rng.normal(0, 8, image.shape), 0, 255), (0, 0), 0.8).astype(np.uint8)
+    depth = np.where(band, 85.0, 130.0).astype(np.float32) + rng.normal(0, 0.5, (h, w)).astype(np.float32)
+    ys, xs = np.nonzero(band & (xx > 20) & (xx < 300))
+    box = f"box:{xs.min()},{ys.min()},{xs.max()},{ys.max()}"
+    truth = band & (xx >= xs.min()) & (xx <= xs.max())
+    mask = make_segmenter("colortrack").start(image, Prompt.parse(box), depth)
+    assert mask_iou(mask, truth) > 0.85
+    assert mask[pale_bed].mean() < 0.05
+
+
 def test_prompt_off_the_tissue_gives_a_clear_error_or_small_mask():
     frame, truth = _scene(0, None)
     seg = make_segmenter("colortrack")

@@ -315,13 +315,19 @@ class ColorTrackSegmenter(Segmenter):
         for x, y in prompt.negative:
             cv2.circle(gc, (int(x * sx), int(y * sy)), radius, cv2.GC_BGD, -1)
         if depth_mm is not None:
-            # Instruments in front of the tissue inside the box are definitely background: the
-            # nearest decile of depth inside the box, well in front of its median.
+            # Pixels of the box far off the tissue's depth are probably background: instruments in
+            # front, the bed behind. The tissue's depth is taken in the middle fifth of the box: an
+            # elongated tissue lying diagonally passes through the box's centre but leaves most of
+            # the box to the bed, whose depth would then be the box's median (and GrabCut would take
+            # in tissue-coloured bed).
             depth_small = cv2.resize(
                 np.nan_to_num(depth_mm.astype(np.float32), nan=0), (sw, sh), interpolation=cv2.INTER_NEAREST
             )
             inside = depth_small[by : by + bh, bx : bx + bw]
-            good = inside[inside > 0]
+            usable = (inside > 0) & ~metal[by : by + bh, bx : bx + bw]
+            middle = np.zeros_like(usable)
+            middle[bh * 2 // 5 : max(bh * 3 // 5, 1), bw * 2 // 5 : max(bw * 3 // 5, 1)] = True
+            good = inside[usable & middle] if (usable & middle).sum() >= 20 else inside[inside > 0]
             if good.size:
                 median = np.median(good)
                 tol = self.settings.depth_tolerance_mm * 3
