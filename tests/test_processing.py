@@ -80,6 +80,25 @@ def test_tracks_are_256_points_in_the_object_frame(processed):
     assert np.isfinite(moved).all() and moved.max() < 30.0
 
 
+def test_first_frame_preview_beside_the_derived_file(recording, processed):
+    """The picture of the first frame's decisions: the left image with the mask tinted green and the
+    object frame's axes drawn from its projected origin (Z in blue, toward the narrow end)."""
+    preview = cv2.imread(str(processed.with_name("mini_002.processed.png")))
+    left = Recording.open(recording).rectified_frame(0).left
+    assert preview.shape == left.shape
+    _, mask_msg = next(Recording.open(processed).messages(layout.TISSUE_MASK, 0, 1))
+    mask = cv2.imdecode(np.frombuffer(mask_msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 0
+    mask[:50] = False  # the labels' band
+    tint = preview[mask].astype(float) - left[mask].astype(float)
+    assert tint[:, 1].mean() > 15 and tint[:, 2].mean() < 0  # greener, less red
+    frame = json.loads(Recording.open(processed).metadata_records[layout.DERIVED_METADATA]["object_frame"])
+    rotation, origin = np.asarray(frame["rotation"]), np.asarray(frame["origin"])
+    camera = Recording.open(recording).camera
+    u, v = camera.project((origin + 0.7 * 20.0 * rotation[:, 2])[None])[0]  # on the Z arrow
+    b, g, r = preview[int(round(v)), int(round(u))].astype(int)
+    assert b > 150 and b > r + 60, (b, g, r)
+
+
 def test_source_is_never_modified(recording, processed):
     before = hashlib.sha256(recording.read_bytes()).hexdigest()
     process_recording(recording, processed, ProcessOptions(progress=False, tracker="none", max_frames=2),

@@ -36,6 +36,7 @@ import torch
 
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError, VisionForceError
+from vfdata.recon.preview import draw_label
 from vfdata.recording import McapWriter, Recording, layout
 from vfdata.recording.messages import TFMessage, TransformStamped, WrenchStamped
 
@@ -79,8 +80,7 @@ def draw_force_overlay(image_bgr: np.ndarray, origin_uv: tuple[float, float], fo
         if tip != (u0, v0):
             cv2.arrowedLine(out, (u0, v0), tip, (0, 220, 255), 3, cv2.LINE_AA, tipLength=0.2)
     if label:
-        cv2.putText(out, label, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(out, label, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+        draw_label(out, label, (10, 24), scale=0.6)
     return out
 
 

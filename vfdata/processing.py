@@ -18,10 +18,12 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from vfdata import __version__
+from vfdata.atomic import atomic_output
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt, estimate_object_frame, make_depth_estimator, make_segmenter, tissue_cloud
 from vfdata.recon.object_frame import ObjectFrame, up_in_camera
+from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.messages import CompressedImage, Image, PointCloud2, TFMessage, TransformStamped
 from vfdata.recording.writer import McapWriter
@@ -69,6 +71,11 @@ class StageClock:
 def default_output(src: Path) -> Path:
     """rec.mcap -> rec.processed.mcap, beside the source."""
     return src.with_name(src.name.removesuffix(".mcap") + ".processed.mcap")
+
+
+def preview_path(out: Path) -> Path:
+    """rec.processed.mcap -> rec.processed.png: the first-frame picture beside the derived MCAP."""
+    return out.with_name(out.name.removesuffix(".mcap") + ".png")
 
 
 def _sha256(path: Path) -> str:
@@ -283,6 +290,8 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
                     tracker = _TrackerStage(options.tracker, cloud, camera, frame.left, ground_truth, options)
                     points, visible = tracker.points, camera.in_mask(tracker.points, mask)
                     t = clock.add("tracking", t)
+                preview = first_frame_preview(frame.left, mask, camera, frame_info,
+                                              points if tracker is not None else None, prompt.box)
             elif tracker is not None and not tracker.offline:
                 points, visible = tracker.update(i, cloud, mask, frame.left, depth)
                 t = clock.add("tracking", t)
@@ -324,7 +333,19 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
             "stage_fps": json.dumps({k: round(v, 2) for k, v in clock.fps(n_frames).items()}),
             "converter_version": __version__,
         })
+    # Written once the MCAP is complete; it describes that MCAP, so it replaces an older picture.
+    with atomic_output(preview_path(out), overwrite=True) as tmp:
+        tmp.write_bytes(_png(preview))
     return out
+
+
+def _png(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise VisionForceError("the first-frame preview could not be encoded as PNG")
+    return data.tobytes()
 
 
 def _box_text(rec: Recording) -> str:

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from vfdata.errors import VisionForceError
-from vfdata.processing import TRACKERS, ProcessOptions, default_output, process_recording
+from vfdata.processing import TRACKERS, ProcessOptions, default_output, preview_path, process_recording
 
 
 def _options(text: str | None) -> dict:
@@ -27,8 +27,9 @@ def _options(text: str | None) -> dict:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("process", help="reconstruct and track the tissue of a recording",
                        description="Write a derived MCAP beside the recording (default IN.processed.mcap) with "
-                                   "/tissue/mask, /tissue/depth, /tissue/points, /tf_static and /tracking/points. "
-                                   "The source is never modified.")
+                                   "/tissue/mask, /tissue/depth, /tissue/points, /tf_static and /tracking/points, and "
+                                   "a picture of the first frame's mask, object frame and tracked points beside it "
+                                   "(OUT with .png: look at it before training). The source is never modified.")
     p.add_argument("src", type=Path, help="recording MCAP")
     p.add_argument("out", type=Path, nargs="?", help="derived MCAP (default: IN.processed.mcap)")
     p.add_argument("--depth", default="sgbm", help="depth backend: sgbm (default), stereoanyvideo, recorded")
@@ -60,5 +61,5 @@ def run(args: argparse.Namespace) -> int:
         working_range_mm=tuple(args.working_range_mm),
     )
     out = process_recording(args.src, args.out or default_output(args.src), options, overwrite=args.overwrite)
-    print(f"wrote {out}")
+    print(f"wrote {out} and {preview_path(out).name} (the first frame's mask, object frame and points)")
     return 0
