@@ -168,7 +168,8 @@ def test_experiment_end_to_end_on_a_tiny_simulated_dataset(tmp_path):
         assert set(predictions["recording"]) == {"mini_002"} and metrics["test_frames"] == len(predictions["true"])
         assert len(np.unique(predictions["frame_time_ns"])) == len(predictions["frame_time_ns"])
         assert metrics["pooled"]["rmse"] == pytest.approx(reports.run_metrics(predictions)["pooled"]["rmse"])
-    for key in ("table1.md", "table2.md", "table3.md", "timing.md", "fig5", "fig6", "fig7", "training"):
+    for key in ("table1.md", "table2.md", "table3.md", "timing.md", "fig5", "fig6", "fig7", "training",
+                "first_frames"):
         assert result.reports[key].is_file(), key
     assert "KLT" in result.reports["table3.md"].read_text()
     stamp = (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns

@@ -135,3 +135,6 @@ def test_object_frame_to_dict_is_json():
     assert isinstance(frame, ObjectFrame)
     data = json.loads(json.dumps(frame.to_dict()))
     np.testing.assert_allclose(data["rotation"], frame.rotation)
+    again = ObjectFrame.from_dict(data)
+    np.testing.assert_allclose(again.matrix(), frame.matrix())
+    assert (again.up_known, again.score_deg) == (frame.up_known, frame.score_deg)

@@ -231,6 +231,14 @@ def test_epoch_curves_join_resumed_versions(tmp_path):
     assert reports.training_summary(no_validation) == {"epochs": 2, "best_epoch": None}
 
 
+def test_first_frames_side_by_side(tmp_path):
+    images = {f"rec_{k} (90 deg)": np.full((48, 64, 3), 40 * k, np.uint8) for k in range(3)}
+    path = reports.plot_first_frames(images, tmp_path / "first.png", title="test")
+    assert _is_png(path)
+    height, width = cv2.imread(str(path)).shape[:2]
+    assert width > height  # two to a row, two rows
+
+
 def test_tables_say_how_long_each_model_trained():
     """Runs of unequal length in one table (a 20-epoch ablation beside 60-epoch runs) are named with
     their epochs and best epoch per seed; models without logs are left out of that line."""

@@ -590,7 +590,32 @@ def _figures(out: Path, entries: list[Entry], trackers: list[str], dataset: str)
                     mask = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
         paths["fig6"] = reports.plot_tracked_points(image, shown, out / "fig6_tracked_points.png", mask,
                                                     title=f"{test.id}, frame {peak} (force peak)")
+    firsts = {f"{e.id} ({e.orientation_deg:g} deg)": _first_frame(e, trackers[0])
+              for e in entries if e.split == "test" and e.processed(trackers[0]).is_file()}
+    if firsts:
+        paths["first_frames"] = reports.plot_first_frames(
+            firsts, out / "fig_first_frames.png",
+            title=f"{dataset}: first frame of each test recording (mask, object frame, tracked points)")
     return paths
+
+
+def _first_frame(entry: Entry, tracker: str) -> np.ndarray:
+    """`first_frame_preview` of a processed recording, drawn from its files."""
+    import cv2
+
+    from vfdata.predict import read_tracks
+    from vfdata.recon.object_frame import ObjectFrame
+    from vfdata.recon.preview import first_frame_preview
+    from vfdata.recording import Recording, layout
+
+    with Recording.open(entry.mcap) as rec:
+        image, camera = rec.rectified_frame(0).left, rec.camera
+    tracks = read_tracks(entry.processed(tracker))
+    with Recording.open(entry.processed(tracker)) as derived:
+        msg = derived.message(layout.TISSUE_MASK, 0)
+    mask = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+    frame = ObjectFrame.from_dict(json.loads(tracks.metadata["object_frame"]))
+    return first_frame_preview(image, mask, camera, frame, frame.to_camera(tracks.points_object_mm[0]))
 
 
 def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[str, Path]:

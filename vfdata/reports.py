@@ -481,6 +481,23 @@ def plot_training_curves(curves: Mapping[str, Mapping[str, np.ndarray]], path: s
     return save_figure(fig, path)
 
 
+def plot_first_frames(images: Mapping[str, np.ndarray], path: str | Path, title: str = "") -> Path:
+    """The first-frame pictures of several recordings ({title: BGR image}, e.g.
+    `vfdata.recon.preview.first_frame_preview`) side by side, two to a row."""
+    plt = _pyplot()
+    cols = min(2, len(images))
+    rows = -(-len(images) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.4 * cols, 5.4 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (label, image) in zip(axes.ravel(), images.items(), strict=False):
+        ax.imshow(np.ascontiguousarray(image[..., ::-1]))
+        ax.set_title(label, fontsize=10)
+    if title:
+        fig.suptitle(title)
+    return save_figure(fig, path)
+
+
 def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.ndarray, np.ndarray]],
                         path: str | Path, mask: np.ndarray | None = None, title: str = "") -> Path:
     """Fig. 6: tracked points of each tracker on the left image of one (peak) frame, side by side.

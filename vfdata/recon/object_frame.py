@@ -73,6 +73,12 @@ class ObjectFrame:
             "score_deg": self.score_deg,
         }
 
+    @classmethod
+    def from_dict(cls, values: dict) -> ObjectFrame:
+        """The inverse of `to_dict` (e.g. the `object_frame` of a derived MCAP's metadata)."""
+        return cls(np.asarray(values["rotation"], dtype=np.float64), np.asarray(values["origin"], dtype=np.float64),
+                   bool(values["up_known"]), float(values["score_deg"]))
+
 
 def hemisphere_directions(steps: int = CANDIDATE_STEPS) -> np.ndarray:
     """(steps*steps, 3) unit directions covering the hemisphere z >= 0: `steps` polar angles (cell
