@@ -5,6 +5,8 @@ value by value, through `vfdata.Recording`."""
 from __future__ import annotations
 
 import logging
+import sqlite3
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -547,6 +549,27 @@ def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2):
             assert isinstance(next(indexed.payload_blocks("/netft_data"))[1], list)  # two frame_id lengths
         finally:
             indexed.close()
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_indexed_access_from_several_threads(tmp_path, ros2):
+    """The encoding threads fetch their images themselves: from two threads at once every message
+    comes back whole (a ROS 2 bag gives each thread its own sqlite connections, which sqlite would
+    otherwise take in turns), and closing the bag closes them all."""
+    bag = tmp_path / ("b" if ros2 else "b.bag")
+    bag_with_every_shape(bag, ros2)
+    with bags.open_bag(bag) as reader:
+        topics = set(reader.topics)
+        expect = {topic: iterated(reader, topic) for topic in topics}
+        indexed = bag_index.open_indexed_bag(reader, bag, topics)
+        jobs = [(topic, i) for topic in sorted(topics) for i in range(len(expect[topic]))] * 4
+        with ThreadPoolExecutor(2) as pool:
+            got = list(pool.map(lambda job: bytes(indexed.message(*job)), jobs))
+        assert got == [expect[topic][i][1] for topic, i in jobs]
+        indexed.close()
+        if ros2:
+            with pytest.raises(sqlite3.ProgrammingError):
+                indexed.message(*jobs[0])
 
 
 def test_indexed_access_only_where_cheap(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import mmap
 import sqlite3
 import struct
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -355,12 +356,20 @@ def _ros1_refs(buffer: mmap.mmap, data: np.ndarray, chunks: tuple[np.ndarray, np
 
 class _SqliteBag(IndexedBag):
     """A ROS 2 bag in sqlite3 storage (one or more .db3 files, not compressed), read through our own
-    read-only connections: messages are rows of `messages(id, topic_id, timestamp, data)`."""
+    read-only connections: messages are rows of `messages(id, topic_id, timestamp, data)`.
 
-    def __init__(self, connections: list[sqlite3.Connection],
+    Each thread reads through connections of its own: sqlite serialises the calls on one connection,
+    so two encoding threads copying images out of one connection took turns."""
+
+    def __init__(self, files: list[Path], connections: list[sqlite3.Connection],
                  refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
-        self._db = connections
+        self._files = files
+        self._db = connections  # the opening thread's
         self._refs = refs  # topic -> (receive ns, file index, row id), in bag order
+        self._local = threading.local()
+        self._local.db = connections
+        self._opened = list(connections)  # every thread's, to close
+        self._lock = threading.Lock()
 
     @classmethod
     def open(cls, path: Path, reader: AnyReader, topics: set[str]) -> _SqliteBag | None:
@@ -370,11 +379,7 @@ class _SqliteBag(IndexedBag):
         connections = []
         try:
             for file in files:
-                db = sqlite3.connect(file.resolve().as_uri() + "?mode=ro&immutable=1", uri=True,
-                                     check_same_thread=False)
-                # Pages through a memory map: an image spans hundreds of pages, one read() each otherwise.
-                db.execute("PRAGMA mmap_size = 1099511627776")
-                connections.append(db)
+                connections.append(_connect(file))
             # One query per file for all the topics (a query per topic scanned the messages once each).
             parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
             for index, db in enumerate(connections):
@@ -402,14 +407,23 @@ class _SqliteBag(IndexedBag):
             for db in connections:
                 db.close()
             raise
-        return cls(connections, refs)
+        return cls(files, connections, refs)
 
     def receive_ns(self, topic: str) -> np.ndarray:
         return self._refs[topic][0]
 
+    def _connections(self) -> list[sqlite3.Connection]:
+        mine = getattr(self._local, "db", None)
+        if mine is None:
+            mine = [_connect(file) for file in self._files]
+            with self._lock:
+                self._opened.extend(mine)
+            self._local.db = mine
+        return mine
+
     def _blob(self, topic: str, i: int):
         _, file, row = self._refs[topic]
-        return self._db[int(file[i])].blobopen("messages", "data", int(row[i]), readonly=True)
+        return self._connections()[int(file[i])].blobopen("messages", "data", int(row[i]), readonly=True)
 
     def message(self, topic: str, i: int) -> bytes:
         with self._blob(topic, i) as blob:
@@ -429,8 +443,16 @@ class _SqliteBag(IndexedBag):
                 yield np.array([r[0] for r in rows], np.int64), _as_table([r[1] for r in rows])
 
     def close(self) -> None:
-        for db in self._db:
-            db.close()
+        with self._lock:
+            for db in self._opened:
+                db.close()
+
+
+def _connect(file: Path) -> sqlite3.Connection:
+    db = sqlite3.connect(file.resolve().as_uri() + "?mode=ro&immutable=1", uri=True, check_same_thread=False)
+    # Pages through a memory map: an image spans hundreds of pages, one read() each otherwise.
+    db.execute("PRAGMA mmap_size = 1099511627776")
+    return db
 
 
 def _sqlite_files(path: Path) -> list[Path] | None:
