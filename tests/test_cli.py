@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 from vfdata.cli import COMMANDS, build_parser
-from vfdata.commands.experiment import SIMULATOR_VARIANT_NAMES, VARIANT_NAMES
+from vfdata.commands.experiment import EXTRA_VARIANT_NAMES, SIMULATOR_VARIANT_NAMES, VARIANT_NAMES
 
 
 def test_every_command_registers():
@@ -16,10 +16,11 @@ def test_every_command_registers():
 
 
 def test_experiment_help_lists_the_real_variants():
-    from vfdata.experiment import SIMULATOR_VARIANTS, VARIANTS
+    from vfdata.experiment import EXTRA_VARIANTS, SIMULATOR_VARIANTS, VARIANTS
 
     assert tuple(VARIANTS) == VARIANT_NAMES
     assert tuple(SIMULATOR_VARIANTS) == SIMULATOR_VARIANT_NAMES
+    assert tuple(EXTRA_VARIANTS) == EXTRA_VARIANT_NAMES
 
 
 def test_startup_does_not_import_torch():

@@ -133,6 +133,48 @@ def test_clips_force_and_features(dataset_root):
     np.testing.assert_allclose(item["tokens"][..., 4:].numpy()[ok], 0.0, atol=1e-2)
 
 
+def test_canonical_side_mirrors_a_recording_seen_from_its_other_flank(tmp_path):
+    """With canonical_side, a recording whose first frame shows only its y < 0 points is mirrored: the
+    y and vy of its tokens and its Fy negated, `side` -1; one showing its y > 0 points is unchanged."""
+    times = frame_times(20)
+    write_recording(tmp_path, "neg", times, hidden=tuple((0, i) for i in range(10, 20)))  # y > 0 hidden
+    write_recording(tmp_path, "pos", times, hidden=tuple((0, i) for i in range(10)))
+    manifest = write_manifest(tmp_path, [{"id": "neg", "orientation_deg": 180, "split": "test"},
+                                         {"id": "pos", "orientation_deg": 0, "split": "test"}])
+    _, entries = load_manifest(manifest)
+    plain = ForceClipDataset(entries, progress=False)
+    mirrored = ForceClipDataset(entries, progress=False, canonical_side=True)
+    flip = torch.tensor([1.0, -1.0, 1.0, 1.0, -1.0, 1.0])
+    neg, pos = 0, 2  # first clips of each recording (starts 0 and 4 in each)
+    assert float(mirrored[neg]["side"]) == -1.0 and float(plain[neg]["side"]) == 1.0
+    torch.testing.assert_close(mirrored[neg]["tokens"], plain[neg]["tokens"] * flip)
+    torch.testing.assert_close(mirrored[neg]["force"], plain[neg]["force"] * flip[:3])
+    assert float(mirrored[pos]["side"]) == 1.0
+    torch.testing.assert_close(mirrored[pos]["tokens"], plain[pos]["tokens"])
+    with pytest.raises(ValueError, match="object frame"):
+        ForceClipDataset(entries, frame="camera", canonical_side=True, progress=False)
+    for _ in range(2):  # written to the cache, then read from it
+        cached = ForceClipDataset(entries, progress=False, canonical_side=True, cache_dir=tmp_path / "cache")
+        assert float(cached[neg]["side"]) == -1.0
+        torch.testing.assert_close(cached[neg]["force"], mirrored[neg]["force"])
+    # Test predictions are turned back to the sensor's Fy: a "model" that predicts the (mirrored)
+    # training target exactly gives the sensor's force as both prediction and truth.
+    from vfdata.experiment import test_predictions
+
+    class Exact:
+        def eval(self):
+            return self
+
+        def predict_forces(self, batch):
+            return batch["force"]
+
+    loader = torch.utils.data.DataLoader(mirrored, batch_size=4, collate_fn=collate_clips)
+    predictions, _ = test_predictions(Exact(), loader)
+    assert float(mirrored[neg]["force"][0, 1]) == -2.0  # the fixture's sensor Fy is 2 N throughout
+    np.testing.assert_allclose(predictions["true"], predictions["pred"])
+    np.testing.assert_allclose(predictions["true"][:, 1], 2.0)
+
+
 def test_hidden_point_is_invalid_with_its_velocity_neighbours(dataset_root):
     _, manifest = dataset_root
     _, entries = load_manifest(manifest)

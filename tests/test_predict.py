@@ -150,12 +150,31 @@ def test_windowed_forces_equal_the_model_on_each_causal_window():
     np.testing.assert_allclose(shorter[:29], forces[:29], rtol=1e-4, atol=1e-5)
 
 
+def test_canonical_side_mirrors_the_tracks_in_and_the_force_back_out():
+    """A model trained with canonical_side sees a recording shown from its y < 0 flank mirrored, and
+    its Fy is turned back: the same as mirroring the tracks by hand, running the plain spec and
+    mirroring the force."""
+    reg = _regressor(2)
+    points, visible = _tracks()
+    points = points - np.array([0.0, 30.0, 0.0])  # the first frame shows the y < 0 flank
+    canonical = predict.TokenSpec(canonical_side=True)
+    assert canonical.side(points[0], visible[0]) == -1.0 and predict.TokenSpec().side(points[0], visible[0]) == 1.0
+    got = predict.forces_from_tracks(reg, canonical, points, visible, np.eye(3), np.zeros(3))
+    by_hand = predict.forces_from_tracks(reg, predict.TokenSpec(), points * [1, -1, 1], visible, np.eye(3),
+                                         np.zeros(3)) * [1, -1, 1]
+    np.testing.assert_allclose(got, by_hand, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(got, predict.forces_from_tracks(reg, predict.TokenSpec(), points, visible, np.eye(3),
+                                                           np.zeros(3)), atol=1e-3)
+
+
 @pytest.mark.parametrize("window", [8, None])
-@pytest.mark.parametrize("subset", ["all", "top_bottom_20"])
+@pytest.mark.parametrize("subset", ["all", "top_bottom_20", "canonical_side"])
 def test_streaming_model_reproduces_the_offline_forces(window, subset):
     reg = _regressor(1)
     points, visible = _tracks(frames=25)
-    spec = predict.TokenSpec(subset=subset)
+    if subset == "canonical_side":
+        points = points - np.array([0.0, 30.0, 0.0])
+    spec = predict.TokenSpec(canonical_side=True) if subset == "canonical_side" else predict.TokenSpec(subset=subset)
     offline = predict.forces_from_tracks(reg, spec, points, visible, np.eye(3), np.zeros(3), window=window)
     stream = predict.StreamingForceModel(reg, spec, np.eye(3), np.zeros(3), window=window)
     stamps = np.arange(25) * 33_333_333

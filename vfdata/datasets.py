@@ -9,7 +9,9 @@ dict (the batch contract of `vfmodels.ForceRegressor`):
 - `force` (T, 3) float32 N: the sensor's force interpolated at each frame time (NaN where the
   sensor stream has a gap); the sensor is mounted under the tissue and turns with it, so its frame is
   fixed to the object;
-- `orientation_deg`, `recording` (id), `frame_time_ns` (T,) int64, `frame_index` (T,) int64.
+- `orientation_deg`, `recording` (id), `frame_time_ns` (T,) int64, `frame_index` (T,) int64;
+- `side` (float, +1 or -1): the factor applied to the y of the points and of the force (see
+  `canonical_side`); multiply a predicted Fy by it to get the sensor's.
 
 Point inputs (`input`):
 - "tracks" (default): the 256 tracked points of `/tracking/points`, in the object frame (default)
@@ -17,6 +19,12 @@ Point inputs (`input`):
   v_t = fps/2 (p_{t+1} - p_{t-1}), one-sided at the first and last frame of a recording and on each
   side of a gap (never across one); all points or only the top and bottom 20% by object-frame z on
   the recording's first frame (`subset`);
+  With `canonical_side` (beyond the paper), a recording whose first frame shows the object's y < 0
+  side (mean y of the visible tracked points) is mirrored across the object's XZ plane, the y of its
+  points and of its force negated (`seen_side`, `mirror_y`): the object frame fixes Z along the tissue
+  and X against gravity, but not which flank of the tissue the camera sees, and a test view from
+  the other flank (e.g. rotated 180 degrees) puts every point where no training point was. The
+  mirror is a symmetry of an axisymmetric tissue hanging from a clamp under gravity along X.
 - "cloud": the tissue point cloud `/tissue/points` itself, `cloud_points` points drawn per frame
   (no correspondences, so positions only);
 - "rgb": the left image (the RGB baseline); "depth": the tissue-masked depth (the ViT baseline).
@@ -153,6 +161,19 @@ def top_bottom(reference_mm: np.ndarray, fraction: float = TOP_BOTTOM_FRACTION) 
     return np.sort(np.unique(np.concatenate([order[:k], order[-k:]])))
 
 
+def seen_side(points_object_mm: np.ndarray, visible: np.ndarray) -> float:
+    """+1.0 when a frame's visible points (N, 3), object frame, lie on the y >= 0 side on average,
+    else -1.0: the flank of the tissue the camera sees."""
+    points = np.asarray(points_object_mm, dtype=np.float64)
+    seen = np.asarray(visible, dtype=bool) & np.isfinite(points).all(axis=1)
+    return -1.0 if seen.any() and points[seen, 1].mean() < 0 else 1.0
+
+
+def mirror_y(values: np.ndarray, side: float) -> np.ndarray:
+    """`values` (..., 3) with y multiplied by `side` (+1 or -1); its own inverse."""
+    return np.asarray(values) * np.array([1.0, side, 1.0], dtype=np.asarray(values).dtype)
+
+
 def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[int, int]], fps: float,
                    features: str) -> tuple[np.ndarray, np.ndarray]:
     """Tokens (F, N, C) float32 (C = 6 for pos_vel, else 3) and valid (F, N): invalid or non-finite
@@ -199,6 +220,7 @@ class Decoded:
     force_n: np.ndarray  # (F, 3) float32
     inputs: np.ndarray  # tokens (F, N, C) float32 | images (F, 3, S, S) uint8 | depth (F, 1, S, S) float16 mm
     valid: np.ndarray | None  # (F, N) bool for tokens
+    side: float = 1.0  # the y factor applied to points and force (`canonical_side`)
 
 
 def _fps(times_ns: np.ndarray) -> float:
@@ -316,6 +338,9 @@ def _point_tokens(entry: ManifestEntry, times_ns: np.ndarray, points_object_mm: 
                   object_frame: tuple[np.ndarray, np.ndarray] | None, opts: dict,
                   force_n: np.ndarray | None = None) -> Decoded:
     points = points_object_mm
+    force = _force_at(entry, times_ns) if force_n is None else force_n
+    side = seen_side(points[0], visible[0]) if opts["canonical_side"] and len(points) else 1.0
+    points, force = mirror_y(points, side), mirror_y(force, side).astype(np.float32)
     if opts["subset"] == "top_bottom_20":
         keep = top_bottom(points_object_mm[0], TOP_BOTTOM_FRACTION)
         points, visible = points[:, keep], visible[:, keep]
@@ -325,8 +350,7 @@ def _point_tokens(entry: ManifestEntry, times_ns: np.ndarray, points_object_mm: 
     runs = segments(times_ns)
     fps = opts["fps"] or _fps(times_ns)
     tokens, valid = point_features(points, visible, runs, fps, opts["features"])
-    force = _force_at(entry, times_ns) if force_n is None else force_n
-    return Decoded(times_ns, force, tokens, valid)
+    return Decoded(times_ns, force, tokens, valid, side)
 
 
 def _decode_ground_truth(entry: ManifestEntry, opts: dict) -> Decoded:
@@ -376,17 +400,21 @@ def decode_recording(entry: ManifestEntry, opts: dict, cache_dir: Path | None = 
     if cache_dir is not None:
         files = _source_files(entry, opts)
         stamp = [(str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in files if p.exists()]
-        key = hashlib.sha256(json.dumps([stamp, sorted(opts.items())], default=str).encode()).hexdigest()[:20]
+        # An option added later is left out of the key at its default, so existing caches stay valid.
+        keyed = {k: v for k, v in opts.items() if not (k == "canonical_side" and not v)}
+        key = hashlib.sha256(json.dumps([stamp, sorted(keyed.items())], default=str).encode()).hexdigest()[:20]
         cache = Path(cache_dir) / f"{entry.id}-{key}.npz"
         if cache.is_file():
             with np.load(cache) as z:
-                return Decoded(z["times_ns"], z["force_n"], z["inputs"], z["valid"] if "valid" in z else None)
+                return Decoded(z["times_ns"], z["force_n"], z["inputs"], z["valid"] if "valid" in z else None,
+                               float(z["side"]) if "side" in z else 1.0)
     decode = _decode_ground_truth if opts["source"] == "ground_truth" else _decode_processed
     decoded = decode(entry, opts)
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_name(cache.name + f".tmp-{np.random.randint(1 << 30)}.npz")
-        arrays = dict(times_ns=decoded.times_ns, force_n=decoded.force_n, inputs=decoded.inputs)
+        arrays = dict(times_ns=decoded.times_ns, force_n=decoded.force_n, inputs=decoded.inputs,
+                      side=np.float64(decoded.side))
         if decoded.valid is not None:
             arrays["valid"] = decoded.valid
         np.savez(tmp, **arrays)
@@ -405,7 +433,7 @@ class ForceClipDataset(Dataset):
                  frame: str = "object", features: str = "pos_vel", subset: str = "all", clip_frames: int = 16,
                  stride: int = 4, cloud_points: int = 256, num_points: int = 256, image_size: int = 112,
                  fps: float | None = None, seed: int = 0, cache_dir: str | Path | None = None,
-                 progress: bool = True):
+                 progress: bool = True, canonical_side: bool = False):
         choices = dict(input=(input, INPUTS), source=(source, ("processed", "ground_truth")),
                        frame=(frame, ("object", "camera")), features=(features, FEATURES), subset=(subset, SUBSETS))
         for name, (value, allowed) in choices.items():
@@ -413,8 +441,11 @@ class ForceClipDataset(Dataset):
                 raise ValueError(f"{name} '{value}' is not one of {', '.join(allowed)}")
         if clip_frames < 1 or stride < 1:
             raise ValueError("clip_frames and stride must be positive")
+        if canonical_side and (input != "tracks" or frame != "object"):
+            raise ValueError("canonical_side mirrors tracked points in the object frame (input tracks, frame object)")
         self.opts = dict(input=input, source=source, frame=frame, features=features, subset=subset, fps=fps,
-                         cloud_points=cloud_points, num_points=num_points, image_size=image_size, seed=seed)
+                         cloud_points=cloud_points, num_points=num_points, image_size=image_size, seed=seed,
+                         canonical_side=canonical_side)
         self.clip_frames = clip_frames
         self.entries = list(recordings)
         self.input_key = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}[input]
@@ -451,6 +482,7 @@ class ForceClipDataset(Dataset):
             "recording": entry.id,
             "frame_time_ns": torch.from_numpy(np.ascontiguousarray(d.times_ns[window])),
             "frame_index": torch.arange(start, start + self.clip_frames, dtype=torch.int64),
+            "side": torch.tensor(d.side, dtype=torch.float32),
         }
         if self.input_key == "depth":
             item["depth"] = item["depth"].float()
@@ -509,7 +541,7 @@ class ForceDataModule(_DataModuleBase):
                  features: str = "pos_vel", subset: str = "all", clip_frames: int = 16, stride: int = 4,
                  cloud_points: int = 256, num_points: int = 256, image_size: int = 112, fps: float | None = None,
                  batch_size: int = 32, num_workers: int = 0, cache_dir: str | None = None, seed: int = 0,
-                 predict_split: str = "test", progress: bool = True):
+                 predict_split: str = "test", progress: bool = True, canonical_side: bool = False):
         super().__init__()
         self.save_hyperparameters()
         self.hparams["frame"] = frame  # Lightning's collector drops an argument named `frame`
@@ -527,7 +559,7 @@ class ForceDataModule(_DataModuleBase):
                 entries, input=hp.input, source=hp.source, frame=hp.frame, features=hp.features, subset=hp.subset,
                 clip_frames=hp.clip_frames, stride=hp.stride, cloud_points=hp.cloud_points,
                 num_points=hp.num_points, image_size=hp.image_size, fps=hp.fps, seed=hp.seed,
-                cache_dir=hp.cache_dir, progress=hp.progress,
+                cache_dir=hp.cache_dir, progress=hp.progress, canonical_side=hp.canonical_side,
             )
             if len(self.datasets[split]) == 0:
                 raise InputError(self.hparams.manifest, f"the '{split}' recordings are shorter than one clip "

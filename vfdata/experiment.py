@@ -78,7 +78,13 @@ SIMULATOR_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("camera_frame_groundtruth", "Camera frame, ground-truth tracks", "ablation_camera_frame.yaml",
             tracker="groundtruth"),
 )}
-ALL_VARIANTS: dict[str, Variant] = {**VARIANTS, **SIMULATOR_VARIANTS}
+# Beyond the paper, also only on request: the proposed model with every recording mirrored to the
+# flank of the tissue its first frame shows (`ForceClipDataset(canonical_side=True)`).
+EXTRA_VARIANTS: dict[str, Variant] = {v.name: v for v in (
+    Variant("canonical_side", "Proposed, mirrored to the seen flank (beyond the paper)",
+            "proposed_canonical_side.yaml"),
+)}
+ALL_VARIANTS: dict[str, Variant] = {**VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS}
 
 # Derived file name per tracker (the manifest's `processed:` key points the datasets at it).
 TRACKER_SUFFIX = {"geometry": ".processed.mcap", "klt": ".klt.mcap", "geometry+": ".geometry_plus.mcap",
@@ -89,7 +95,7 @@ TRACKER_SUFFIX = {"geometry": ".processed.mcap", "klt": ".klt.mcap", "geometry+"
 class ExperimentOptions:
     seeds: int = 3
     epochs: int | None = None  # None: the config's (60)
-    variants: list[str] | None = None  # None: the paper's grid (VARIANTS); SIMULATOR_VARIANTS only by name
+    variants: list[str] | None = None  # None: the paper's grid (VARIANTS); the others only by name
     configs: Path = REPO / "configs"
     depth: str = "sgbm"
     segment: str = "colortrack"
@@ -255,8 +261,13 @@ def test_predictions(regressor, loader) -> tuple[dict[str, np.ndarray], float]:
     with torch.no_grad():
         for batch in loader:
             started = time.perf_counter()
-            pred = regressor.predict_forces(batch).float().numpy()
+            pred = regressor.predict_forces(batch).float().numpy().copy()
             model_seconds += time.perf_counter() - started
+            true = batch["force"].float().numpy().copy()  # changed below: not the batch's own memory
+            if "side" in batch:  # back from a mirrored recording (`canonical_side`) to the sensor's Fy
+                side = batch["side"].float().numpy()[:, None]
+                pred[..., 1] *= side
+                true[..., 1] *= side
             b, t = pred.shape[:2]
             model_frames += b * t
             parts.append(dict(
@@ -265,7 +276,7 @@ def test_predictions(regressor, loader) -> tuple[dict[str, np.ndarray], float]:
                 frame_time_ns=batch["frame_time_ns"].numpy().reshape(-1).astype(np.int64),
                 position=np.tile(np.arange(t), b),
                 pred=pred.reshape(-1, 3).astype(np.float64),
-                true=batch["force"].float().numpy().reshape(-1, 3).astype(np.float64),
+                true=true.reshape(-1, 3).astype(np.float64),
             ))
     if not parts:
         raise VisionForceError("the test split gave no clips")
@@ -666,5 +677,5 @@ def summary_text(out: Path, paths: dict[str, Path]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["ALL_VARIANTS", "SIMULATOR_VARIANTS", "VARIANTS", "ExperimentOptions", "Variant", "read_manifest",
-           "run_experiment", "write_reports"]
+__all__ = ["ALL_VARIANTS", "EXTRA_VARIANTS", "SIMULATOR_VARIANTS", "VARIANTS", "ExperimentOptions", "Variant",
+           "read_manifest", "run_experiment", "write_reports"]

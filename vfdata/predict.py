@@ -168,12 +168,20 @@ class TokenSpec:
     """How the point tokens of a model are made from tracks, with the names and meaning of
     `vfdata.datasets.ForceDataModule` (the model must see what it was trained on): frame "object" or
     "camera"; features "pos_vel", "pos" or "vel"; subset "all" or "top_bottom_20" (the top and bottom
-    20% of the points by object-frame z on the first frame); `fps` for velocities in mm/s."""
+    20% of the points by object-frame z on the first frame); `fps` for velocities in mm/s;
+    `canonical_side` as `ForceClipDataset`'s (the caller mirrors the tracks and the forces: `side`)."""
+
+    def side(self, points_object_mm: np.ndarray, visible: np.ndarray) -> float:
+        """The y factor for a recording whose first frame is given: -1 to mirror it, else +1."""
+        from vfdata.datasets import seen_side
+
+        return seen_side(points_object_mm, visible) if self.canonical_side else 1.0
 
     frame: str = "object"
     features: str = "pos_vel"
     subset: str = "all"
     fps: float = 30.0
+    canonical_side: bool = False  # mirror y when the first frame shows the y < 0 flank (and Fy back)
 
     @property
     def channels(self) -> int:
@@ -237,7 +245,7 @@ def token_spec_from_checkpoint(ckpt: str | Path) -> TokenSpec:
     values = {key: str(hp[key]) for key in ("frame", "features", "subset") if hp.get(key) is not None}
     if hp.get("fps") is not None:
         values["fps"] = float(hp["fps"])
-    return TokenSpec(**values)
+    return TokenSpec(**values, canonical_side=bool(hp.get("canonical_side", False)))
 
 
 @torch.no_grad()
@@ -276,9 +284,12 @@ def forces_from_tracks(regressor, spec: TokenSpec, points_object_mm: np.ndarray,
                        rotation: np.ndarray, origin_mm: np.ndarray, window: int | None = CLIP_FRAMES
                        ) -> np.ndarray:
     """Tracks of a whole recording -> forces (T, 3) in N, object frame."""
-    tokens, valid = point_tokens(points_object_mm, visible, spec, rotation, origin_mm)
+    from vfdata.datasets import mirror_y
+
+    side = spec.side(points_object_mm[0], visible[0])
+    tokens, valid = point_tokens(mirror_y(points_object_mm, side), visible, spec, rotation, origin_mm)
     z = frame_embeddings(regressor.model, tokens, valid, regressor)
-    return windowed_forces(regressor, z, window)
+    return mirror_y(windowed_forces(regressor, z, window), side)
 
 
 # ---- derived files -------------------------------------------------------------------------------
@@ -456,11 +467,13 @@ class StreamingForceModel:
         self.embeddings: deque = deque(maxlen=window or 1)
         self.state = None  # LSTM (h, c) when window is None
         self.keep: np.ndarray | None = None  # top/bottom subset, fixed on the first frame
+        self.side = 1.0  # the y mirror (`TokenSpec.canonical_side`), fixed on the first frame
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
         self.recent.append((int(stamp_ns), np.asarray(points_object_mm, dtype=np.float64),
                             np.asarray(visible, dtype=bool)))
         if len(self.recent) == 1:
+            self.side = self.spec.side(self.recent[0][1], self.recent[0][2])
             if self.spec.subset == "top_bottom_20":
                 from vfdata.datasets import TOP_BOTTOM_FRACTION, top_bottom
 
@@ -485,8 +498,10 @@ class StreamingForceModel:
 
     @torch.no_grad()
     def _estimate(self, target: int) -> tuple[int, np.ndarray]:
+        from vfdata.datasets import mirror_y
+
         recent = list(self.recent)
-        points = np.stack([p[1] for p in recent])
+        points = mirror_y(np.stack([p[1] for p in recent]), self.side)
         visible = np.stack([p[2] for p in recent])
         tokens, valid = point_tokens(points, visible, self.spec, self.rotation, self.origin_mm, self.keep)
         tokens, valid = tokens[target], valid[target]
@@ -500,7 +515,7 @@ class StreamingForceModel:
             self.embeddings.append(z[0])
             h, _ = decoder.lstm(torch.stack(list(self.embeddings))[None])
         force = self.regressor.denormalise_force(decoder.heads(h[0, -1])).numpy().astype(np.float64)
-        return recent[target][0], force
+        return recent[target][0], mirror_y(force, self.side)
 
 
 class StreamingForceEstimator:

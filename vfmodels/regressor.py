@@ -133,9 +133,13 @@ class ForceRegressor(L.LightningModule):
         self._evaluate(batch, "test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
-        """{"force_n": (B, T, 3) in N, "recording": [...], "frame_time_ns": (B, T)} (CPU tensors)."""
+        """{"force_n": (B, T, 3) in N, "recording": [...], "frame_time_ns": (B, T)} (CPU tensors).
+        A clip of a mirrored recording (batch "side" -1) has its Fy turned back to the sensor's."""
+        force_n = self.predict_forces(batch).float().cpu()
+        if "side" in batch:
+            force_n[..., 1] *= batch["side"].float().cpu()[:, None]
         return {
-            "force_n": self.predict_forces(batch).float().cpu(),
+            "force_n": force_n,
             "recording": list(batch.get("recording", [])),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
         }

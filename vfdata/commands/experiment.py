@@ -9,6 +9,7 @@ from pathlib import Path
 VARIANT_NAMES = ("proposed", "camera_frame", "klt", "point_cloud", "position_only", "velocity_only", "top_bottom",
                  "rgb", "depth_vit")
 SIMULATOR_VARIANT_NAMES = ("groundtruth", "camera_frame_groundtruth")
+EXTRA_VARIANT_NAMES = ("canonical_side",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "outputs are kept), trains and tests each variant with each seed (finished runs are not "
                     "repeated), and writes Tables I-III, the timing table and the figures into OUT. Variants: "
                     + ", ".join(VARIANT_NAMES) + "; on simulated recordings, only when named: "
-                    + ", ".join(SIMULATOR_VARIANT_NAMES) + " (the simulator's true tracks).")
+                    + ", ".join(SIMULATOR_VARIANT_NAMES) + " (the simulator's true tracks); beyond the paper, "
+                    "only when named: " + ", ".join(EXTRA_VARIANT_NAMES) + " (each recording mirrored to the flank "
+                    "of the tissue its first frame shows).")
     p.add_argument("manifest", type=Path, help="dataset manifest, e.g. datasets/glove.manifest.yaml")
     p.add_argument("--out", type=Path, required=True, help="results folder, e.g. results/glove")
     p.add_argument("--seeds", type=int, default=3, help="seeds per variant (default 3)")
