@@ -459,6 +459,15 @@ def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
             "reduction": -reports.relative_change(rmse["groundtruth"], rmse["camera_frame_groundtruth"]),
             "holds": bool(rmse["groundtruth"] <= 0.5 * rmse["camera_frame_groundtruth"]),
         }
+    if "canonical_side" in rmse and "camera_frame" in rmse:
+        # Beyond the paper: the object frame once every recording shows the same flank of the tissue.
+        result["object_frame_halves_rmse_canonical_side"] = {
+            "text": "mirrored to the seen flank (beyond the paper), the object frame lowers the average RMSE by "
+                    ">= 50% vs the camera frame",
+            "canonical_side": rmse["canonical_side"], "camera_frame": rmse["camera_frame"],
+            "reduction": -reports.relative_change(rmse["canonical_side"], rmse["camera_frame"]),
+            "holds": bool(rmse["canonical_side"] <= 0.5 * rmse["camera_frame"]),
+        }
     compare("geometry_beats_klt", "proposed", "klt", text="geometry tracking beats KLT")
     compare("beats_position_only", "proposed", "position_only", text="position + velocity beats position only")
     compare("beats_velocity_only", "proposed", "velocity_only", text="position + velocity beats velocity only")
