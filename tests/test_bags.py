@@ -565,11 +565,12 @@ def test_indexed_access_from_several_threads(tmp_path, ros2):
         jobs = [(topic, i) for topic in sorted(topics) for i in range(len(expect[topic]))] * 4
         with ThreadPoolExecutor(2) as pool:
             got = list(pool.map(lambda job: bytes(indexed.message(*job)), jobs))
-        assert got == [expect[topic][i][1] for topic, i in jobs]
-        indexed.close()
-        if ros2:
-            with pytest.raises(sqlite3.ProgrammingError):
-                indexed.message(*jobs[0])
+            assert got == [expect[topic][i][1] for topic, i in jobs]
+            indexed.close()
+            if ros2:  # closed for the threads that read, and for a thread that comes after
+                for thread in (pool, ThreadPoolExecutor(1)):
+                    with pytest.raises(sqlite3.ProgrammingError):
+                        thread.submit(indexed.message, *jobs[0]).result()
 
 
 def test_indexed_access_only_where_cheap(tmp_path):

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from vfdata import predict
 from vfdata.calibration import PinholeCamera
-from vfdata.errors import InputError
+from vfdata.errors import InputError, VisionForceError
 from vfdata.recording import Recording, layout
 from vfmodels import ForceRegressor, SetTransformerLSTM
 
@@ -192,6 +192,26 @@ def _save_checkpoint(reg: ForceRegressor, path, datamodule_hp: dict | None = Non
         checkpoint["datamodule_hyper_parameters"] = datamodule_hp
     torch.save(checkpoint, path)
     return path
+
+
+def test_canonical_side_is_read_from_the_checkpoint_and_needs_the_object_frame(tmp_path):
+    ckpt = _save_checkpoint(_regressor(), tmp_path / "c.ckpt", {"canonical_side": True, "frame": "object"})
+    assert predict.token_spec_from_checkpoint(ckpt).canonical_side is True
+    with pytest.raises(VisionForceError, match="object frame"):
+        predict.TokenSpec(frame="camera", canonical_side=True)
+
+
+def test_predict_step_turns_a_mirrored_clip_back():
+    reg = _regressor(3)
+    points, visible = _tracks(frames=16)
+    tokens, valid = predict.point_tokens(points, visible, predict.TokenSpec())
+    batch = {"tokens": torch.from_numpy(tokens)[None].repeat(2, 1, 1, 1),
+             "valid": torch.from_numpy(valid)[None].repeat(2, 1, 1), "side": torch.tensor([1.0, -1.0])}
+    with torch.no_grad():
+        out = reg.predict_step(batch, 0)["force_n"]
+        raw = reg.predict_forces(batch)
+    torch.testing.assert_close(out[0], raw[0])
+    torch.testing.assert_close(out[1], raw[1] * torch.tensor([1.0, -1.0, 1.0]))
 
 
 def test_load_force_model_reads_the_token_spec_and_checks_features(tmp_path):

@@ -236,19 +236,19 @@ def test_first_frames_side_by_side(tmp_path):
     path = reports.plot_first_frames(images, tmp_path / "first.png", title="test")
     assert _is_png(path)
     height, width = cv2.imread(str(path)).shape[:2]
-    assert width > height  # two to a row, two rows
+    assert 1.0 < width / height < 1.6  # two to a row, two rows (one row of three would be ~3.5)
 
 
 def test_tables_say_how_long_each_model_trained():
     """Runs of unequal length in one table (a 20-epoch ablation beside 60-epoch runs) are named with
     their epochs and best epoch per seed; models without logs are left out of that line."""
-    runs = [reports.run_metrics(predictions(0.05, seed=s)) for s in range(2)]
+    runs = [reports.run_metrics(predictions(0.05, seed=s)) for s in range(3)]
     runs[0]["training"] = {"epochs": 60, "best_epoch": 4}
-    runs[1]["training"] = {"epochs": 20, "best_epoch": None}
+    runs[1]["training"] = {"epochs": 20, "best_epoch": None}  # seed 2: no logs
     table = {"proposed": reports.aggregate_seeds(runs),
              "camera_frame": reports.aggregate_seeds([reports.run_metrics(predictions(0.3))])}
     text = reports.force_table_markdown(table, {"proposed": "Proposed"})
-    assert text.splitlines()[-1].endswith("one per seed): Proposed 60/20 (4/–).")
+    assert text.splitlines()[-1].endswith("one per seed): Proposed 60/20/? (4/–/?).")
     rows = list(csv.DictReader(io.StringIO(reports.force_table_csv(table))))
-    assert {r["epochs_best"] for r in rows if r["model"] == "proposed"} == {"60/20 (4/–)"}
+    assert {r["epochs_best"] for r in rows if r["model"] == "proposed"} == {"60/20/? (4/–/?)"}
     assert {r["epochs_best"] for r in rows if r["model"] == "camera_frame"} == {""}

@@ -623,19 +623,19 @@ def _first_frame(entry: Entry, tracker: str) -> np.ndarray:
     """`first_frame_preview` of a processed recording, drawn from its files."""
     import cv2
 
-    from vfdata.predict import read_tracks
     from vfdata.recon.object_frame import ObjectFrame
     from vfdata.recon.preview import first_frame_preview
     from vfdata.recording import Recording, layout
 
     with Recording.open(entry.mcap) as rec:
         image, camera = rec.rectified_frame(0).left, rec.camera
-    tracks = read_tracks(entry.processed(tracker))
     with Recording.open(entry.processed(tracker)) as derived:
-        msg = derived.message(layout.TISSUE_MASK, 0)
-    mask = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
-    frame = ObjectFrame.from_dict(json.loads(tracks.metadata["object_frame"]))
-    return first_frame_preview(image, mask, camera, frame, frame.to_camera(tracks.points_object_mm[0]))
+        mask_msg = derived.message(layout.TISSUE_MASK, 0)
+        points = derived.message(layout.TRACKING_POINTS, 0).points
+        frame = ObjectFrame.from_dict(json.loads(derived.metadata_records[layout.DERIVED_METADATA]["object_frame"]))
+    mask = cv2.imdecode(np.frombuffer(mask_msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
+    tracked = frame.to_camera(np.stack([points["x"], points["y"], points["z"]], axis=1))
+    return first_frame_preview(image, mask, camera, frame, tracked)
 
 
 def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[str, Path]:

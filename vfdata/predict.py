@@ -183,6 +183,10 @@ class TokenSpec:
     fps: float = 30.0
     canonical_side: bool = False  # mirror y when the first frame shows the y < 0 flank (and Fy back)
 
+    def __post_init__(self):
+        if self.canonical_side and self.frame != "object":
+            raise VisionForceError("canonical_side mirrors tracks in the object frame, not the camera frame")
+
     @property
     def channels(self) -> int:
         return 6 if self.features == "pos_vel" else 3
@@ -286,7 +290,7 @@ def forces_from_tracks(regressor, spec: TokenSpec, points_object_mm: np.ndarray,
     """Tracks of a whole recording -> forces (T, 3) in N, object frame."""
     from vfdata.datasets import mirror_y
 
-    side = spec.side(points_object_mm[0], visible[0])
+    side = spec.side(points_object_mm[0], visible[0]) if len(points_object_mm) else 1.0
     tokens, valid = point_tokens(mirror_y(points_object_mm, side), visible, spec, rotation, origin_mm)
     z = frame_embeddings(regressor.model, tokens, valid, regressor)
     return mirror_y(windowed_forces(regressor, z, window), side)
@@ -408,6 +412,8 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
         "stage": "predict", "source": str(src.resolve()), "processed": str(processed.resolve()),
         "checkpoint": str(Path(ckpt).resolve()), "token_spec": json.dumps(spec.__dict__),
         "window": str(window), "x_axis": x_axis, "torque": "not estimated (NaN)",
+        # -1: the first frame shows the y < 0 flank, mirrored in and out (token_spec canonical_side)
+        "side": str(spec.side(tracks.points_object_mm[0], tracks.visible[0]) if len(tracks.times_ns) else 1.0),
         "object_frame": json.dumps({"rotation": tracks.rotation.tolist(), "origin": tracks.origin_mm.tolist()}),
         "force_fps": f"{force_fps:.1f}",
     }

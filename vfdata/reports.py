@@ -76,7 +76,7 @@ def aggregate_seeds(runs: Sequence[Mapping]) -> dict:
         "seeds": len(runs),
         # Runs of one results folder may differ in length (resumed, or re-run with another --epochs);
         # a table must say so, or a 20-epoch ablation reads as a 60-epoch one.
-        "training": [r["training"] for r in runs if "training" in r],
+        "training": [r.get("training") for r in runs],  # None for a seed without logs
     }
 
 
@@ -106,7 +106,7 @@ def force_table_rows(table: Mapping[str, Mapping], labels: Mapping[str, str] | N
                     "model": variant, "label": labels.get(variant, variant), "metric": metric,
                     "component": comp_label, "value": agg["value"][key],
                     "orientation_std": agg["orientation_std"][key], "seed_std": agg["seed_std"][key],
-                    "seeds": agg["seeds"], "epochs_best": _epochs_text(agg) if agg.get("training") else "",
+                    "seeds": agg["seeds"], "epochs_best": _epochs_text(agg) if _has_training(agg) else "",
                 })
     return rows
 
@@ -130,16 +130,20 @@ def force_table_markdown(table: Mapping[str, Mapping], labels: Mapping[str, str]
     lines += ["", f"Pooled over all test frames ± std across test orientations; mean over "
                   f"{'/'.join(map(str, seeds))} seed(s)."]
     trained = [f"{labels.get(variant, variant)} {_epochs_text(agg)}" for variant, agg in table.items()
-               if agg.get("training")]
+               if _has_training(agg)]
     if trained:
         lines.append(f"Epochs trained (best validation epoch, counted from 0 as in the checkpoint names; "
                      f"one per seed): {'; '.join(trained)}.")
     return "\n".join(lines) + "\n"
 
 
+def _has_training(agg: Mapping) -> bool:
+    return any(t is not None for t in agg.get("training", []))
+
+
 def _epochs_text(agg: Mapping) -> str:
-    """"60 (4)", or "60/60 (4/7)" for two seeds."""
-    runs = agg.get("training", [])
+    """"60 (4)", or "60/60 (4/7)" for two seeds; "?" for a seed without logs, "–" without validation."""
+    runs = [t or {"epochs": "?", "best_epoch": "?"} for t in agg.get("training", [])]
     return (f"{'/'.join(str(t['epochs']) for t in runs)} "
             f"({'/'.join('–' if t['best_epoch'] is None else str(t['best_epoch']) for t in runs)})")
 

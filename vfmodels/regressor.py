@@ -157,9 +157,15 @@ class ForceRegressor(L.LightningModule):
                  sync_dist=True)
         out = self._outputs.setdefault(split, [])
         orientation = batch.get("orientation_deg", torch.zeros(b))
+        pred_n = self.denormalise_force(pred).detach().float().cpu()
+        true_n = force_n.detach().float().cpu().clone()
+        if "side" in batch:  # the metrics in the sensor's frame, as the experiment's tables
+            side = batch["side"].float().cpu()[:, None]
+            pred_n[..., 1] *= side
+            true_n[..., 1] *= side
         out.append(dict(
-            pred_n=self.denormalise_force(pred).detach().float().cpu().numpy().reshape(-1, 3),
-            true_n=force_n.detach().float().cpu().numpy().reshape(-1, 3),
+            pred_n=pred_n.numpy().reshape(-1, 3),
+            true_n=true_n.numpy().reshape(-1, 3),
             orientation_deg=np.repeat(torch.as_tensor(orientation).cpu().numpy(), t),
             recording=np.repeat(np.asarray(batch.get("recording", [""] * b), dtype=object), t),
             frame_time_ns=(batch["frame_time_ns"].cpu().numpy().reshape(-1) if "frame_time_ns" in batch

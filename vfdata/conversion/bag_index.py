@@ -364,12 +364,12 @@ class _SqliteBag(IndexedBag):
     def __init__(self, files: list[Path], connections: list[sqlite3.Connection],
                  refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
         self._files = files
-        self._db = connections  # the opening thread's
         self._refs = refs  # topic -> (receive ns, file index, row id), in bag order
         self._local = threading.local()
         self._local.db = connections
         self._opened = list(connections)  # every thread's, to close
         self._lock = threading.Lock()
+        self._closed = False
 
     @classmethod
     def open(cls, path: Path, reader: AnyReader, topics: set[str]) -> _SqliteBag | None:
@@ -415,9 +415,15 @@ class _SqliteBag(IndexedBag):
     def _connections(self) -> list[sqlite3.Connection]:
         mine = getattr(self._local, "db", None)
         if mine is None:
-            mine = [_connect(file) for file in self._files]
+            mine = []
             with self._lock:
-                self._opened.extend(mine)
+                if self._closed:
+                    raise sqlite3.ProgrammingError("the bag is closed")
+                try:
+                    for file in self._files:
+                        mine.append(_connect(file))
+                finally:
+                    self._opened.extend(mine)  # closed with the others, also after a failed connect
             self._local.db = mine
         return mine
 
@@ -435,7 +441,7 @@ class _SqliteBag(IndexedBag):
 
     def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
         # File by file: the files of a split bag follow one another in time.
-        for db in self._db:
+        for db in self._connections():
             cursor = db.execute("SELECT messages.timestamp, messages.data FROM messages JOIN topics ON "
                                 "messages.topic_id = topics.id WHERE topics.name = ? "
                                 "ORDER BY messages.timestamp, messages.id", (topic,))
@@ -444,6 +450,7 @@ class _SqliteBag(IndexedBag):
 
     def close(self) -> None:
         with self._lock:
+            self._closed = True
             for db in self._opened:
                 db.close()
 

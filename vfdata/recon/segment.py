@@ -324,10 +324,18 @@ class ColorTrackSegmenter(Segmenter):
                 np.nan_to_num(depth_mm.astype(np.float32), nan=0), (sw, sh), interpolation=cv2.INTER_NEAREST
             )
             inside = depth_small[by : by + bh, bx : bx + bw]
-            usable = (inside > 0) & ~metal[by : by + bh, bx : bx + bw]
+            usable = inside > 0
+            if self.settings.grey_penalty > 0:  # metal is not the tissue
+                usable &= ~metal[by : by + bh, bx : bx + bw]
             middle = np.zeros_like(usable)
             middle[bh * 2 // 5 : max(bh * 3 // 5, 1), bw * 2 // 5 : max(bw * 3 // 5, 1)] = True
-            good = inside[usable & middle] if (usable & middle).sum() >= 20 else inside[inside > 0]
+            # Positive points are on the tissue by definition; else the middle, else the whole box.
+            points = np.zeros_like(usable)
+            for x, y in prompt.positive:
+                u, v = int(x * sx) - bx, int(y * sy) - by
+                points[max(v - 2, 0) : max(v + 3, 0), max(u - 2, 0) : max(u + 3, 0)] = True
+            good = next((inside[usable & where] for where in (points, middle, np.ones_like(usable))
+                         if (usable & where).sum() >= 20), inside[inside > 0])
             if good.size:
                 median = np.median(good)
                 tol = self.settings.depth_tolerance_mm * 3
