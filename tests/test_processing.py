@@ -44,6 +44,7 @@ def test_derived_file_layout_and_provenance(recording, processed):
     meta = rec.metadata_records[layout.DERIVED_METADATA]
     assert meta["source_sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
     assert meta["depth"] == "sgbm" and meta["tracker"] == "geometry" and meta["up_known"] == "true"
+    assert meta["origin_cut_by_view"] == "false"  # the mini tissue is whole in view
     assert set(json.loads(meta["stage_fps"])) >= {"depth", "mask", "cloud", "tracking"}
 
 

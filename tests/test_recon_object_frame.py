@@ -138,3 +138,19 @@ def test_object_frame_to_dict_is_json():
     again = ObjectFrame.from_dict(data)
     np.testing.assert_allclose(again.matrix(), frame.matrix())
     assert (again.up_known, again.score_deg) == (frame.up_known, frame.score_deg)
+
+
+@pytest.mark.parametrize("base_mm, cut", [(51.0, True), (30.0, False)])
+def test_origin_cut_by_view_flags_a_tissue_that_runs_out_of_the_image(base_mm, cut):
+    """A tube seen from above, running up the image from its base (the origin) at camera y = base_mm:
+    at 51 mm (100 mm deep) the base projects onto the bottom row, at 30 mm 100 px above it."""
+    from vfdata.calibration import PinholeCamera
+    from vfdata.recon.object_frame import origin_cut_by_view
+
+    camera = PinholeCamera(500.0, 500.0, 320.0, 256.0, 640, 512)
+    rng = np.random.default_rng(0)
+    along = rng.uniform(0.0, 40.0, 2000)  # mm from the base toward the tip
+    points = np.stack([rng.uniform(-8, 8, 2000), base_mm - along, np.full(2000, 100.0)], axis=1)
+    rotation = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # columns X, Y, Z = -y
+    frame = ObjectFrame(rotation, np.array([0.0, base_mm, 100.0]), up_known=True, score_deg=0.0)
+    assert origin_cut_by_view(points, frame, camera) is cut

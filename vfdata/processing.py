@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
@@ -22,11 +23,13 @@ from vfdata.atomic import atomic_output
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt, estimate_object_frame, make_depth_estimator, make_segmenter, tissue_cloud
-from vfdata.recon.object_frame import ObjectFrame, up_in_camera
+from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view, up_in_camera
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.messages import CompressedImage, Image, PointCloud2, TFMessage, TransformStamped
 from vfdata.recording.writer import McapWriter
+
+log = logging.getLogger(__name__)
 
 TRACKERS = ("geometry", "geometry+", "klt", "cotracker", "groundtruth", "none")
 DEPTH_UNIT_MM = 0.1  # /tissue/depth is 16UC1 in units of 0.1 mm: 6.5 m range, finer than any stereo
@@ -284,14 +287,21 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
                     raise InputError(src, f"the tissue mask of the first frame is empty ({int(mask.sum())} pixels, "
                                           f"{len(cloud)} points): check the prompt")
                 frame_info = estimate_object_frame(cloud, up)
+                origin_cut = origin_cut_by_view(cloud, frame_info, camera)
+                if origin_cut:
+                    log.warning("warning: %s: the tissue runs out of the image at its wide end: the object frame's "
+                                "origin (2nd percentile along Z) may be where the view cuts it, not at the clamp "
+                                "(see %s)", src, preview_path(out).name)
                 t = clock.add("object_frame", t)
                 writer.write(layout.TF_STATIC, object_tf(frame_info, frame.stamp_ns))
                 if options.tracker != "none":
                     tracker = _TrackerStage(options.tracker, cloud, camera, frame.left, ground_truth, options)
                     points, visible = tracker.points, camera.in_mask(tracker.points, mask)
                     t = clock.add("tracking", t)
-                preview = first_frame_preview(frame.left, mask, camera, frame_info,
-                                              points if tracker is not None else None, prompt.box)
+                preview = first_frame_preview(
+                    frame.left, mask, camera, frame_info, points if tracker is not None else None, prompt.box,
+                    warning="the tissue runs out of the image at its wide end: origin maybe not at the clamp"
+                    if origin_cut else None)
             elif tracker is not None and not tracker.offline:
                 points, visible = tracker.update(i, cloud, mask, frame.left, depth)
                 t = clock.add("tracking", t)
@@ -329,6 +339,7 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
             "tracker_parameters": json.dumps(_jsonable({"num_points": options.num_points, "seed": options.seed,
                                                         **options.tracker_options})),
             "object_frame": json.dumps(_jsonable(frame_info.to_dict())),
+            "origin_cut_by_view": str(origin_cut).lower(),
             "up_known": str(up is not None).lower(),
             "stage_fps": json.dumps({k: round(v, 2) for k, v in clock.fps(n_frames).items()}),
             "converter_version": __version__,

@@ -182,6 +182,26 @@ def estimate_object_frame(
     )
 
 
+def origin_cut_by_view(points: np.ndarray, frame: ObjectFrame, camera, margin_px: float = 8.0,
+                       band_mm: float = 5.0, share: float = 0.05) -> bool:
+    """True when the tissue may run out of the image at its wide end: at least `share` of the cloud's
+    points (N, 3, camera frame, mm) within `band_mm` of the origin along Z project within `margin_px`
+    of the image border (`camera`: a `vfdata.calibration.PinholeCamera`; the margin allows for the
+    few pixels the mask and the cloud lose at the border). The origin, the 2nd percentile of what is
+    visible, may then mark where the view cuts the tissue rather than its clamped end, shifting every
+    object-frame z by the hidden length, which the image cannot tell (on glove: 20.5 mm on glove_016,
+    1.3 mm on glove_017, both flagged)."""
+    pts = np.asarray(points, dtype=np.float64)
+    near = pts[frame.to_object(pts)[:, 2] < band_mm]
+    if len(near) == 0:
+        return False
+    uv = camera.project(near)
+    ok = np.isfinite(uv).all(axis=1)
+    u, v = uv[ok, 0], uv[ok, 1]
+    edge = (u < margin_px) | (v < margin_px) | (u > camera.width - 1 - margin_px) | (v > camera.height - 1 - margin_px)
+    return bool(edge.mean() >= share) if len(edge) else False
+
+
 def robust_line(centres: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Line (unit direction, point) through (K, 3) points by PCA, refitted without the points farther
     from the line than 2.5 times the median distance (and 0.3 mm)."""

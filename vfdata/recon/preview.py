@@ -23,10 +23,11 @@ POINT_COLOUR = (255, 255, 0)
 
 def first_frame_preview(image_bgr: np.ndarray, mask: np.ndarray, camera: PinholeCamera, frame: ObjectFrame,
                         points_mm: np.ndarray | None = None, box: tuple[float, float, float, float] | None = None,
-                        axis_mm: float = 20.0) -> np.ndarray:
+                        axis_mm: float = 20.0, warning: str | None = None) -> np.ndarray:
     """A copy of the left image (H, W, 3) with: the mask tinted and outlined, the prompt `box`
     (x0, y0, x1, y1 px), the object frame's axes drawn `axis_mm` long from its origin (X red, Y green,
-    Z blue; all in the left camera frame, mm) and the tracked `points_mm` (N, 3) as dots."""
+    Z blue; all in the left camera frame, mm), the tracked `points_mm` (N, 3) as dots, and a
+    `warning` line in red."""
     out = np.ascontiguousarray(image_bgr).copy()
     inside = np.asarray(mask, dtype=bool)
     out[inside] = (0.6 * out[inside] + 0.4 * np.array(MASK_COLOUR)).astype(np.uint8)
@@ -52,6 +53,8 @@ def first_frame_preview(image_bgr: np.ndarray, mask: np.ndarray, camera: Pinhole
     draw_label(out, f"mask {int(inside.sum())} px; object frame: search score {frame.score_deg:.1f} deg, {up}", (8, 20))
     draw_label(out, f"axes {axis_mm:g} mm: X red, Y green, Z blue (wide end -> narrow); "
                f"{0 if points_mm is None else len(points_mm)} tracked points", (8, 40))
+    if warning:
+        draw_label(out, f"warning: {warning}", (8, 60), (90, 90, 255))
     return out
 
 
