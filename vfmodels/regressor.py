@@ -135,14 +135,20 @@ class ForceRegressor(L.LightningModule):
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
         """{"force_n": (B, T, 3) in N, "recording": [...], "frame_time_ns": (B, T)} (CPU tensors).
         A clip of a mirrored recording (batch "side" -1) has its Fy turned back to the sensor's."""
-        force_n = self.predict_forces(batch).float().cpu()
-        if "side" in batch:
-            force_n[..., 1] *= batch["side"].float().cpu()[:, None]
         return {
-            "force_n": force_n,
+            "force_n": self.unmirror(self.predict_forces(batch), batch),
             "recording": list(batch.get("recording", [])),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
         }
+
+    @staticmethod
+    def unmirror(force_n: torch.Tensor, batch: dict[str, Any]) -> torch.Tensor:
+        """Forces (B, T, 3) as a new float CPU tensor, with Fy turned back to the sensor's for the clips
+        of a mirrored recording (batch "side" -1, `ForceClipDataset(canonical_side=True)`)."""
+        out = force_n.detach().float().cpu().clone()
+        if "side" in batch:
+            out[..., 1] *= batch["side"].float().cpu()[:, None]
+        return out
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
         return torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
@@ -157,12 +163,8 @@ class ForceRegressor(L.LightningModule):
                  sync_dist=True)
         out = self._outputs.setdefault(split, [])
         orientation = batch.get("orientation_deg", torch.zeros(b))
-        pred_n = self.denormalise_force(pred).detach().float().cpu()
-        true_n = force_n.detach().float().cpu().clone()
-        if "side" in batch:  # the metrics in the sensor's frame, as the experiment's tables
-            side = batch["side"].float().cpu()[:, None]
-            pred_n[..., 1] *= side
-            true_n[..., 1] *= side
+        # The metrics in the sensor's frame, as the experiment's tables.
+        pred_n, true_n = self.unmirror(self.denormalise_force(pred), batch), self.unmirror(force_n, batch)
         out.append(dict(
             pred_n=pred_n.numpy().reshape(-1, 3),
             true_n=true_n.numpy().reshape(-1, 3),
