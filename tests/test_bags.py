@@ -22,8 +22,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from vfdata.cli import main
 from vfdata.commands.inspect_bag import inspect_bag_text
-from vfdata.conversion import bag_index, bags
-from vfdata.conversion.bags import BagTopics, convert_bag, stamped_payload_table
+from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, ros_images
+from vfdata.conversion.bag_topics import BagTopics
+from vfdata.conversion.bags import convert_bag, stamped_payload_table
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recording import layout
@@ -283,29 +284,29 @@ def test_raw_image_decoding():
     # row padding (step > width * channels) is dropped
     padded = np.zeros((6, 8 * 3 + 5), np.uint8)
     padded[:, :24] = bgr.reshape(6, 24)
-    assert np.array_equal(bags.raw_image_to_bgr(6, 8, "bgr8", 0, 29, padded.ravel()), bgr)
-    assert np.array_equal(bags.raw_image_to_bgr(6, 8, "rgba8", 0, 32, np.dstack([bgr[..., ::-1], bgr[..., :1]])),
+    assert np.array_equal(ros_images.raw_image_to_bgr(6, 8, "bgr8", 0, 29, padded.ravel()), bgr)
+    assert np.array_equal(ros_images.raw_image_to_bgr(6, 8, "rgba8", 0, 32, np.dstack([bgr[..., ::-1], bgr[..., :1]])),
                           bgr)
     # 16-bit: full range scaled to 8 bits, either byte order
     mono16 = np.array([[0, 257, 65535, 32896]], np.uint16)
     expect = np.repeat(np.array([[0, 1, 255, 128]], np.uint8)[..., None], 3, axis=2)
-    assert np.array_equal(bags.raw_image_to_bgr(1, 4, "mono16", 0, 8, mono16.astype("<u2").tobytes()), expect)
-    assert np.array_equal(bags.raw_image_to_bgr(1, 4, "16UC1", 1, 8, mono16.astype(">u2").tobytes()), expect)
+    assert np.array_equal(ros_images.raw_image_to_bgr(1, 4, "mono16", 0, 8, mono16.astype("<u2").tobytes()), expect)
+    assert np.array_equal(ros_images.raw_image_to_bgr(1, 4, "16UC1", 1, 8, mono16.astype(">u2").tobytes()), expect)
     # Bayer: a flat colour mosaiced in each ROS pattern demosaics back to that colour
     b, g, r = 40, 120, 220
     for pattern_name, layout_2x2 in (("rggb", [[r, g], [g, b]]), ("bggr", [[b, g], [g, r]]),
                                      ("gbrg", [[g, b], [r, g]]), ("grbg", [[g, r], [b, g]])):
         mosaic = np.tile(np.array(layout_2x2, np.uint8), (4, 4))
-        out = bags.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}8", 0, 8, mosaic)
+        out = ros_images.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}8", 0, 8, mosaic)
         assert out[2:6, 2:6].reshape(-1, 3).tolist() == [[b, g, r]] * 16, pattern_name
-        out16 = bags.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}16", 0, 16, (mosaic.astype(np.uint16) * 257))
+        out16 = ros_images.raw_image_to_bgr(8, 8, f"bayer_{pattern_name}16", 0, 16, (mosaic.astype(np.uint16) * 257))
         assert out16[2:6, 2:6].reshape(-1, 3).tolist() == [[b, g, r]] * 16, pattern_name
-    with pytest.raises(bags.UnsupportedImage, match="32FC1"):
-        bags.raw_image_to_bgr(1, 1, "32FC1", 0, 4, b"\0\0\0\0")
-    with pytest.raises(bags.UnsupportedImage, match="step"):
-        bags.raw_image_to_bgr(2, 4, "bgr8", 0, 12, b"\0" * 20)
-    with pytest.raises(bags.UnsupportedImage, match="compressedDepth"):
-        bags.compressed_format("16UC1; compressedDepth png")
+    with pytest.raises(ros_images.UnsupportedImage, match="32FC1"):
+        ros_images.raw_image_to_bgr(1, 1, "32FC1", 0, 4, b"\0\0\0\0")
+    with pytest.raises(ros_images.UnsupportedImage, match="step"):
+        ros_images.raw_image_to_bgr(2, 4, "bgr8", 0, 12, b"\0" * 20)
+    with pytest.raises(ros_images.UnsupportedImage, match="compressedDepth"):
+        ros_images.compressed_format("16UC1; compressedDepth png")
 
 
 def test_stamped_payloads_match_message_encoding():
@@ -384,8 +385,9 @@ def test_force_auto_detection(tmp_path):
 def test_image_topic_auto_detection(tmp_path):
     write_bag(tmp_path / "i.bag", BagSpec(left="/stereo/left/image_mono", right="/stereo/right/image_mono",
                                           camera_info=False, frames=3))
-    with bags.open_bag(tmp_path / "i.bag") as reader:
-        choice = bags.choose_topics(tmp_path / "i.bag", bags.topic_types(reader), BagTopics(), use_camera_info=False)
+    with bag_scan.open_bag(tmp_path / "i.bag") as reader:
+        choice = bag_topics.choose_topics(tmp_path / "i.bag", bag_topics.topic_types(reader), BagTopics(),
+                                          use_camera_info=False)
     assert (choice.left, choice.right) == ("/stereo/left/image_mono", "/stereo/right/image_mono")
     assert choice.how["left"] == "auto-detected"
 
@@ -463,7 +465,7 @@ def test_cli_convert_bag(tmp_path, capsys):
     assert check_file(out) == []  # the earlier output is untouched
     # one storage file of a ROS 2 bag, given alone
     storage_file = next((tmp_path / "cli").glob("*.mcap"))
-    assert bags.is_bag(storage_file)
+    assert bag_scan.is_bag(storage_file)
     assert main(["convert", str(storage_file), str(tmp_path / "file.mcap"), "--format", "png", "--quiet"]) == 0
     check_recording(tmp_path / "file.mcap", spec)
 
@@ -531,7 +533,7 @@ def iterated(reader, topic: str) -> list[tuple[int, bytes]]:
 def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2):
     bag = tmp_path / ("b" if ros2 else "b.bag")
     bag_with_every_shape(bag, ros2)
-    with bags.open_bag(bag) as reader:
+    with bag_scan.open_bag(bag) as reader:
         topics = set(reader.topics)
         indexed = bag_index.open_indexed_bag(reader, bag, topics)
         assert indexed is not None
@@ -558,7 +560,7 @@ def test_indexed_access_from_several_threads(tmp_path, ros2):
     otherwise take in turns), and closing the bag closes them all."""
     bag = tmp_path / ("b" if ros2 else "b.bag")
     bag_with_every_shape(bag, ros2)
-    with bags.open_bag(bag) as reader:
+    with bag_scan.open_bag(bag) as reader:
         topics = set(reader.topics)
         expect = {topic: iterated(reader, topic) for topic in topics}
         indexed = bag_index.open_indexed_bag(reader, bag, topics)
@@ -577,7 +579,7 @@ def test_indexed_access_only_where_cheap(tmp_path):
     bag_with_every_shape(tmp_path / "lz4.bag", ros2=False, lz4=True)
     write_bag(tmp_path / "mcap", BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=2))
     for bag in (tmp_path / "lz4.bag", tmp_path / "mcap"):
-        with bags.open_bag(bag) as reader:
+        with bag_scan.open_bag(bag) as reader:
             assert bag_index.open_indexed_bag(reader, bag, set(reader.topics)) is None
 
 
@@ -585,25 +587,25 @@ def test_indexed_access_only_where_cheap(tmp_path):
 def test_image_heads_and_messages_match_deserialisation(tmp_path, ros2):
     bag = tmp_path / ("b" if ros2 else "b.bag")
     bag_with_every_shape(bag, ros2)
-    with bags.open_bag(bag) as reader:
-        for topic, msgtype in (("/cam/image", bags.IMAGE), ("/cam/compressed", bags.COMPRESSED_IMAGE)):
+    with bag_scan.open_bag(bag) as reader:
+        for topic, msgtype in (("/cam/image", bag_topics.IMAGE), ("/cam/compressed", bag_topics.COMPRESSED_IMAGE)):
             for _, raw in iterated(reader, topic):
                 msg = reader.deserialize(raw, msgtype)
                 head = bag_index.image_head(raw[:bag_index.HEAD_BYTES], msgtype, ros2)
-                assert head == bags._head_of(msg)
-                assert head.stamp_ns == bags.header_stamp_ns(msg) and head.stamp_ns >= T0_NS
+                assert head == bag_scan._head_of(msg)
+                assert head.stamp_ns == bag_scan.header_stamp_ns(msg) and head.stamp_ns >= T0_NS
                 # cut before the last field it needs: no head, the caller deserialises the message
                 assert bag_index.image_head(raw[:head_length(raw, msgtype, ros2) - 1], msgtype, ros2) is None
                 # the whole message, its data a view into the serialised bytes
                 whole = bag_index.image_message(raw, msgtype, ros2)
                 assert whole.head == head and bytes(whole.data) == msg.data.tobytes()
-                if msgtype == bags.IMAGE:
+                if msgtype == bag_topics.IMAGE:
                     assert (whole.is_bigendian, whole.step) == (msg.is_bigendian, msg.step) == (0, 18)
-                from_rosbags = bags._image_message_of(msg)
+                from_rosbags = bag_scan.image_message_of(msg)
                 assert (from_rosbags.head, bytes(from_rosbags.data), from_rosbags.step) == (
                     whole.head, bytes(whole.data), whole.step)
                 assert bag_index.image_message(raw[:-4 if ros2 else -1], msgtype, ros2) is None  # data cut short
-    assert bag_index.image_head(b"\x00\x00\x00\x00" + bytes(40), bags.IMAGE, ros2=True) is None  # big-endian CDR
+    assert bag_index.image_head(b"\x00\x00\x00\x00" + bytes(40), bag_topics.IMAGE, ros2=True) is None  # big-endian CDR
 
 
 def head_length(raw: bytes, msgtype: str, ros2: bool) -> int:
@@ -615,22 +617,22 @@ def head_length(raw: bytes, msgtype: str, ros2: bool) -> int:
 def test_bulk_series_decoding_matches_deserialisation(tmp_path, ros2):
     bag = tmp_path / ("b" if ros2 else "b.bag")
     bag_with_every_shape(bag, ros2)
-    with bags.open_bag(bag) as reader:
+    with bag_scan.open_bag(bag) as reader:
         for topic, width in (("/netft_data", 6), ("/pose", 7)):
             raws = [m for _, m in iterated(reader, topic)]
             first_frame = raws[:100]  # frame "ati" (WrenchStamped) / "ECM_base" (PoseStamped) only
-            stamps, values, frame_id = bags._decode_fixed_batch(first_frame, width, ros2)
+            stamps, values, frame_id = bag_scan._decode_fixed_batch(first_frame, width, ros2)
             messages = [reader.deserialize(raw, reader.topics[topic].msgtype) for raw in first_frame]
-            assert stamps.tolist() == [bags.header_stamp_ns(m) for m in messages]
+            assert stamps.tolist() == [bag_scan.header_stamp_ns(m) for m in messages]
             assert frame_id == messages[0].header.frame_id == ("ati" if width == 6 else "ECM_base")
-            fields = [(m.wrench.force, m.wrench.torque) if width == 6 else bags._pose_fields(m) for m in messages]
+            fields = [(m.wrench.force, m.wrench.torque) if width == 6 else bag_scan._pose_fields(m) for m in messages]
             expect = [[v.x, v.y, v.z] + ([v.w] if hasattr(v, "w") else []) for f in fields for v in f]
             assert values.ravel().tolist() == [x for row in expect for x in row]
             table = np.frombuffer(b"".join(first_frame), np.uint8).reshape(len(first_frame), -1)
-            assert np.array_equal(bags._decode_fixed_batch(table, width, ros2)[1], values)
+            assert np.array_equal(bag_scan._decode_fixed_batch(table, width, ros2)[1], values)
         # two frame ids in one block: not decoded in bulk (the caller goes message by message)
-        assert bags._decode_fixed_batch([m for _, m in iterated(reader, "/netft_data")], 6, ros2) is None
-        series = bags._SeriesReader(reader, bag, "/netft_data", 6)
+        assert bag_scan._decode_fixed_batch([m for _, m in iterated(reader, "/netft_data")], 6, ros2) is None
+        series = bag_scan._SeriesReader(reader, bag, "/netft_data", 6)
         connection = next(c for c in reader.connections if c.topic == "/netft_data")
         for receive_ns, raw in iterated(reader, "/netft_data"):
             series.add(connection, receive_ns, raw)
@@ -647,9 +649,9 @@ def test_indexed_and_streamed_conversions_are_identical(tmp_path, ros2):
     write_bag(fast, spec)
     write_bag(slow, BagSpec(ros2=ros2, storage=StoragePlugin.MCAP, lz4=not ros2,
                             extra_right_ns=spec.extra_right_ns, pose_type="TransformStamped"))
-    with bags.open_bag(fast) as reader:
+    with bag_scan.open_bag(fast) as reader:
         assert bag_index.open_indexed_bag(reader, fast, set(reader.topics)) is not None
-    with bags.open_bag(slow) as reader:
+    with bag_scan.open_bag(slow) as reader:
         assert bag_index.open_indexed_bag(reader, slow, set(reader.topics)) is None
     contents = [raw_messages(convert_bag(bag, tmp_path / f"{bag.stem}.mcap", options=PNG)) for bag in (fast, slow)]
     check_recording(tmp_path / "fast.mcap", spec)
@@ -668,7 +670,7 @@ def raw_messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
 def test_damaged_record_falls_back_to_rosbags_and_its_error(tmp_path):
     bag = tmp_path / "d.bag"
     write_bag(bag, BagSpec(frames=3))
-    with bags.open_bag(bag) as reader:
+    with bag_scan.open_bag(bag) as reader:
         indexed = bag_index.open_indexed_bag(reader, bag, {"/netft_data"})
         position = int(indexed._refs["/netft_data"][1][10])  # data of the 11th force message
         indexed.close()
@@ -676,7 +678,7 @@ def test_damaged_record_falls_back_to_rosbags_and_its_error(tmp_path):
     record = data.rfind(b"op=\x02", 0, position)  # its record header's op field
     data[record + 3] = 6  # a chunk-info op where a message should be
     bag.write_bytes(bytes(data))
-    with bags.open_bag(bag) as reader:
+    with bag_scan.open_bag(bag) as reader:
         assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
     with pytest.raises(InputError, match="damaged bag"):
         convert_bag(bag, tmp_path / "d.mcap", options=PNG)
@@ -718,10 +720,10 @@ def test_write_payloads_equals_one_write_per_message(tmp_path):
 
 def test_ros2_camera_info_read_without_rosbags_matches_it(tmp_path):
     write_bag(tmp_path / "b", BagSpec(ros2=True, frames=2))
-    with bags.open_bag(tmp_path / "b") as reader:
+    with bag_scan.open_bag(tmp_path / "b") as reader:
         connection = next(c for c in reader.connections if c.topic == "/jhu_daVinci/right/camera_info")
         raw = iterated(reader, connection.topic)[0][1]
-        ours = bags._first_camera_info(reader, tmp_path / "b", raw, connection)
+        ours = bag_scan._first_camera_info(reader, tmp_path / "b", raw, connection)
         theirs = reader.deserialize(raw, connection.msgtype)
         assert isinstance(ours, CameraInfo) and not isinstance(theirs, CameraInfo)
         a, b = (bags.bag_camera_info(tmp_path / "b", connection.topic, m, layout.RIGHT_FRAME) for m in (ours, theirs))

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vfdata.conversion.bags import BagTopics, convert_bag, is_bag
+from vfdata.conversion.bag_scan import is_bag
+from vfdata.conversion.bag_topics import BagTopics
+from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 
 

@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion import bags
+from vfdata.conversion import bag_scan, bag_topics, bags
 from vfdata.errors import InputError
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
 
@@ -18,17 +18,17 @@ def add_bag_arguments(p: argparse.ArgumentParser) -> None:
     """The topic remapping and camera options of a bag conversion."""
     g = p.add_argument_group("ROS bags (defaults: dVRK topic names, auto-detected by type when absent)")
     g.add_argument("--left-topic", metavar="TOPIC",
-                   help=f"left images, Image or CompressedImage (default {bags.LEFT_IMAGE_DEFAULTS[0]})")
+                   help=f"left images, Image or CompressedImage (default {bag_topics.LEFT_IMAGE_DEFAULTS[0]})")
     g.add_argument("--right-topic", metavar="TOPIC",
-                   help=f"right images (default {bags.RIGHT_IMAGE_DEFAULTS[0]})")
+                   help=f"right images (default {bag_topics.RIGHT_IMAGE_DEFAULTS[0]})")
     g.add_argument("--left-info-topic", metavar="TOPIC", help="left CameraInfo (default: camera_info beside the "
                                                               "left image topic)")
     g.add_argument("--right-info-topic", metavar="TOPIC", help="right CameraInfo (default: beside the right images)")
     g.add_argument("--force-topic", metavar="TOPIC",
-                   help=f"force sensor WrenchStamped (default: first of {', '.join(bags.FORCE_DEFAULTS)})")
+                   help=f"force sensor WrenchStamped (default: first of {', '.join(bag_topics.FORCE_DEFAULTS)})")
     g.add_argument("--pose-topic", metavar="TOPIC",
-                   help=f"ECM pose, PoseStamped or TransformStamped (default {bags.POSE_DEFAULTS[0]}; "
-                        f"'{bags.NO_TOPIC}' to leave it out)")
+                   help=f"ECM pose, PoseStamped or TransformStamped (default {bag_topics.POSE_DEFAULTS[0]}; "
+                        f"'{bag_topics.NO_TOPIC}' to leave it out)")
     g.add_argument("--calibration", type=Path, metavar="YAML",
                    help="stereo calibration (docs/raw_layout.md) to use instead of the bag's CameraInfo")
     g.add_argument("--pair-tolerance-ms", type=float, metavar="MS",
@@ -38,7 +38,7 @@ def add_bag_arguments(p: argparse.ArgumentParser) -> None:
 def bag_arguments(args: argparse.Namespace) -> dict:
     """Keyword arguments of `bags.convert_bag` from the options of `add_bag_arguments`."""
     return {
-        "topics": bags.BagTopics(args.left_topic, args.right_topic, args.left_info_topic, args.right_info_topic,
+        "topics": bag_topics.BagTopics(args.left_topic, args.right_topic, args.left_info_topic, args.right_info_topic,
                                  args.force_topic, args.pose_topic),
         "calibration": args.calibration,
         "pair_tolerance_ns": None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6),
@@ -64,28 +64,29 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def inspect_bag_text(path: str | Path, topics: bags.BagTopics | None = None, calibration: Path | None = None,
+def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = None, calibration: Path | None = None,
                      pair_tolerance_ns: int | None = None, force_gap_ns: int = FORCE_GAP_TOLERANCE_NS,
                      progress: bool = False) -> str:
     """The report printed by `vfdata inspect-bag`. A bag that cannot be converted is still listed,
     with the reason under "conversion"."""
     path = Path(path)
     lines = []
-    with bags.open_bag(path) as reader:
-        types = bags.topic_types(reader)
+    with bag_scan.open_bag(path) as reader:
+        types = bag_topics.topic_types(reader)
         size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
-        lines.append(f"bag: {path}  ({bags.bag_kind(path)}, {size / 1e6:.1f} MB, {reader.message_count} messages, "
+        lines.append(f"bag: {path}  ({bag_scan.bag_kind(path)}, {size / 1e6:.1f} MB, {reader.message_count} messages, "
                      f"{reader.duration / 1e9:.3f} s)")
         choice = scan = None
         try:
-            choice = bags.choose_topics(path, types, topics or bags.BagTopics(), use_camera_info=calibration is None)
-            scan = bags.scan_bag(reader, path, choice, all_topics=True, progress=progress)
+            choice = bag_topics.choose_topics(path, types, topics or bag_topics.BagTopics(),
+                                              use_camera_info=calibration is None)
+            scan = bag_scan.scan_bag(reader, path, choice, all_topics=True, progress=progress)
             counts, receive = scan.counts, scan.receive_ns
         except InputError as exc:  # still list the topics, then say why convert would stop
             problem = exc.problem
             counts = {name: info.msgcount for name, info in reader.topics.items()}
-            receive = bags.receive_times(reader, path, progress)
-    rates = bags.topic_rates_hz(receive)
+            receive = bag_scan.receive_times(reader, path, progress)
+    rates = bag_scan.topic_rates_hz(receive)
     used = _used_topics(choice)
     width = max([34, *(len(t) + 2 for t in types)])
     lines.append("")
@@ -102,7 +103,7 @@ def inspect_bag_text(path: str | Path, topics: bags.BagTopics | None = None, cal
     return "\n".join(lines)
 
 
-def _used_topics(choice: bags.TopicChoice | None) -> dict[str, str]:
+def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
     if choice is None:
         return {}
     roles = [
@@ -113,7 +114,7 @@ def _used_topics(choice: bags.TopicChoice | None) -> dict[str, str]:
     return {topic: f"{role} ({choice.how.get(key, '')})" for role, topic, key in roles if topic}
 
 
-def _conversion_lines(scan: bags.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
+def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
                       force_gap_ns: int) -> list[str]:
     lines = []
     for stream in (scan.left, scan.right):

@@ -13,10 +13,14 @@ topic names as defaults (every one can be remapped, see `BagTopics`):
 Acquisition time is `header.stamp`; a message whose stamp is 0 (header never filled in) takes the
 bag's receive time instead, with a warning.
 
+Modules, in the order a conversion uses them: `bag_topics` (which topics), `bag_scan` (opening the bag,
+and the first pass: stamps, force, pose, camera info), this one (pairing, the camera model, the
+convert pass), `ros_images` (pixels to BGR), `bag_index` (random access to the messages).
+
 Two steps:
-1. scan: the stamp, encoding and size of every image, all force and pose samples, the first camera
-   info of each side. Topics are chosen, frames paired and the force checked against the video span
-   here, so a bad bag fails before anything is encoded.
+1. scan (`bag_scan`): the stamp, encoding and size of every image, all force and pose samples, the
+   first camera info of each side. Topics are chosen, frames paired and the force checked against the
+   video span here, so a bad bag fails before anything is encoded.
 2. convert: the two images of each pair, in pair order, deserialised, decoded and JPEG/PNG-encoded
    on a thread pool and written in stamp order with force and pose interleaved, as the folder
    converter does.
@@ -28,39 +32,46 @@ image once, directly. Elsewhere (bz2/lz4 chunks, MCAP storage) both steps stream
 from __future__ import annotations
 
 import logging
-import re
 import struct
-from array import array
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.rosbag2 import ReaderError as Ros2ReaderError
-from rosbags.typesys import Stores, get_typestore
+from rosbags.highlevel import AnyReader
 from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.bag_index import (
-    ImageHead,
-    ImageMessage,
-    IndexedBag,
-    image_head,
-    image_message,
-    open_indexed_bag,
+from vfdata.conversion.bag_index import image_message
+from vfdata.conversion.bag_scan import (
+    BagScan,
+    ImageStream,
+    Series,
+    bag_messages,
+    close_scan,
+    deserialize,
+    header_stamp_ns,
+    image_message_of,
+    open_bag,
+    scan_bag,
+)
+from vfdata.conversion.bag_topics import (
+    COMPRESSED_IMAGE,
+    BagTopics,
+    TopicChoice,
+    camera_info_topic,
+    choose_topics,
+    topic_types,
 )
 from vfdata.conversion.ordered_map import ordered_map
 from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
+from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
 from vfdata.errors import InputError
 from vfdata.recording import layout
-from vfdata.recording.cdr import CdrError
 from vfdata.recording.messages import (
     CameraInfo,
     CompressedImage,
@@ -68,8 +79,6 @@ from vfdata.recording.messages import (
     TFMessage,
     TransformStamped,
     WrenchStamped,
-    decode_pose_batch,
-    decode_wrench_batch,
 )
 from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 
@@ -78,627 +87,6 @@ log = logging.getLogger(__name__)
 _NS = 1_000_000_000
 _STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
 _U32 = struct.Struct("<I")
-
-IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
-POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
-IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
-POSE_TYPES = (POSE_STAMPED, TRANSFORM_STAMPED)
-
-# dVRK defaults, in order of preference. Raw images before compressed ones: they are lossless.
-LEFT_IMAGE_DEFAULTS = ("/jhu_daVinci/left/image_raw", "/jhu_daVinci/left/image_raw/compressed")
-RIGHT_IMAGE_DEFAULTS = ("/jhu_daVinci/right/image_raw", "/jhu_daVinci/right/image_raw/compressed")
-# ATI NetFT ROS driver (netft_rdt_driver / netft_utils) and the cisst/SAW ATI force sensor component.
-FORCE_DEFAULTS = ("/netft_data", "/netft/netft_data", "/force_sensor/measured_cf", "/ati/measured_cf")
-# dVRK 2.x CRTK name, the same under a namespace, and the dVRK 1.x name.
-POSE_DEFAULTS = ("/ECM/measured_cp", "/dvrk/ECM/measured_cp", "/dvrk/ECM/position_cartesian_current")
-# dVRK arms publish wrenches estimated from joint torques (e.g. /PSM1/body/measured_cf): never the
-# force sensor, so auto-detection skips them.
-DVRK_ARM_NAMESPACES = ("PSM1", "PSM2", "PSM3", "ECM", "MTML", "MTMR", "SUJ")
-# Names that say "force sensor": netft anywhere, or ati / ft / force_sensor as a whole name part.
-_SENSOR_NAME = re.compile(r"netft|(^|[/_])(ati|ft|force_sensor|ft_sensor|force_torque)([/_]|$)", re.IGNORECASE)
-NO_TOPIC = "none"  # `--pose-topic none`: leave the ECM pose out
-
-# sensor_msgs/Image encodings: name -> (channels, bytes per channel).
-RAW_ENCODINGS: dict[str, tuple[int, int]] = {
-    "bgr8": (3, 1), "rgb8": (3, 1), "bgra8": (4, 1), "rgba8": (4, 1), "mono8": (1, 1),
-    "8UC1": (1, 1), "8UC3": (3, 1), "8UC4": (4, 1),
-    "bgr16": (3, 2), "rgb16": (3, 2), "mono16": (1, 2), "16UC1": (1, 2),
-    "bayer_rggb8": (1, 1), "bayer_bggr8": (1, 1), "bayer_gbrg8": (1, 1), "bayer_grbg8": (1, 1),
-    "bayer_rggb16": (1, 2), "bayer_bggr16": (1, 2), "bayer_gbrg16": (1, 2), "bayer_grbg16": (1, 2),
-    "yuv422": (2, 1), "uyvy": (2, 1), "yuv422_yuy2": (2, 1), "yuyv": (2, 1),
-}
-# To BGR. ROS bayer_rggb8 names the first 2x2 block, as OpenCV's RGGB-style codes do (its older
-# BG-style names for the same codes describe the second row; cv_bridge uses those).
-_COLOR_CODES = {
-    "rgb": cv2.COLOR_RGB2BGR, "bgra": cv2.COLOR_BGRA2BGR, "rgba": cv2.COLOR_RGBA2BGR, "mono": cv2.COLOR_GRAY2BGR,
-    "bayer_rggb": cv2.COLOR_BayerRGGB2BGR, "bayer_bggr": cv2.COLOR_BayerBGGR2BGR,
-    "bayer_gbrg": cv2.COLOR_BayerGBRG2BGR, "bayer_grbg": cv2.COLOR_BayerGRBG2BGR,
-    "uyvy": cv2.COLOR_YUV2BGR_UYVY, "yuyv": cv2.COLOR_YUV2BGR_YUY2,
-}
-_ENCODING_FAMILY = {
-    "rgb8": "rgb", "rgb16": "rgb", "bgra8": "bgra", "8UC4": "bgra", "rgba8": "rgba",
-    "mono8": "mono", "8UC1": "mono", "mono16": "mono", "16UC1": "mono",
-    "yuv422": "uyvy", "uyvy": "uyvy", "yuv422_yuy2": "yuyv", "yuyv": "yuyv",
-    **{f"bayer_{p}{b}": f"bayer_{p}" for p in ("rggb", "bggr", "gbrg", "grbg") for b in (8, 16)},
-}
-
-
-class UnsupportedImage(ValueError):
-    """An image message this converter cannot turn into BGR pixels (the caller names the topic)."""
-
-
-# -- opening and choosing topics ------------------------------------------------------------------
-def is_bag(path: str | Path) -> bool:
-    """A ROS 1 bag (`.bag` file) or a ROS 2 bag (a folder with metadata.yaml, or one `.db3` or `.mcap`
-    storage file of it)."""
-    path = Path(path)
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    return path.is_file() and path.suffix in (".bag", ".db3", ".mcap")
-
-
-def bag_kind(path: str | Path) -> str:
-    return "ROS 1" if Path(path).suffix == ".bag" else "ROS 2"
-
-
-@contextmanager
-def open_bag(path: str | Path) -> Iterator[AnyReader]:
-    """`with open_bag(path) as reader:` an open `rosbags` reader. ROS 2 bags recorded without message
-    definitions are read with the standard ROS 2 types."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "bag not found")
-    if not is_bag(path):
-        raise InputError(path, "not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
-    try:
-        try:
-            reader = AnyReader([path])
-            reader.open()
-        except AnyReaderError as exc:
-            if "no type definitions" not in str(exc):
-                raise
-            # Loading the standard types takes a while, so only for the bags that need them.
-            reader = AnyReader([path], default_typestore=get_typestore(Stores.LATEST))
-            reader.open()
-    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, FileNotFoundError, KeyError, ValueError) as exc:
-        raise InputError(path, f"cannot read the bag ({_first_line(exc)})") from None
-    try:
-        yield reader
-    finally:
-        reader.close()
-
-
-@dataclass(frozen=True)
-class BagTopics:
-    """Topics asked for on the command line; None means the dVRK default or auto-detection.
-    `pose = "none"` leaves the ECM pose out."""
-
-    left: str | None = None
-    right: str | None = None
-    left_info: str | None = None
-    right_info: str | None = None
-    force: str | None = None
-    pose: str | None = None
-
-
-@dataclass
-class TopicChoice:
-    """The topics a conversion reads, each with how it was chosen (for `inspect-bag`)."""
-
-    left: str
-    right: str
-    left_info: str | None
-    right_info: str | None
-    force: str
-    pose: str | None
-    how: dict[str, str] = field(default_factory=dict)
-
-
-def topic_types(reader: AnyReader) -> dict[str, str]:
-    """Topic -> message type (ROS 2 style names, e.g. sensor_msgs/msg/Image, for both bag kinds)."""
-    return {name: info.msgtype or "(mixed types)" for name, info in sorted(reader.topics.items())}
-
-
-def choose_topics(path: Path, types: dict[str, str], asked: BagTopics, use_camera_info: bool = True) -> TopicChoice:
-    """Resolve the topics to read: given ones are checked, missing ones defaulted or auto-detected.
-    Raises InputError (naming the bag) when a required topic cannot be found."""
-    how: dict[str, str] = {}
-    left, right = _choose_images(path, types, asked, how)
-    left_info = right_info = None
-    if use_camera_info:
-        left_info = _choose_info(path, types, asked.left_info, left, "left", "--left-info-topic", how)
-        right_info = _choose_info(path, types, asked.right_info, right, "right", "--right-info-topic", how)
-    force = _choose_force(path, types, asked.force, how)
-    pose = _choose_pose(path, types, asked.pose, how)
-    return TopicChoice(left, right, left_info, right_info, force, pose, how)
-
-
-def _check_given(path: Path, types: dict[str, str], topic: str, allowed: tuple[str, ...], option: str) -> str:
-    if topic not in types:
-        raise InputError(path, f"{option} {topic}: no such topic in the bag")
-    if types[topic] not in allowed:
-        raise InputError(path, f"{option} {topic} is {types[topic]}, expected {' or '.join(allowed)}")
-    return topic
-
-
-def _choose_images(path: Path, types: dict[str, str], asked: BagTopics, how: dict[str, str]) -> tuple[str, str]:
-    if asked.left:
-        left = _check_given(path, types, asked.left, IMAGE_TYPES, "--left-topic")
-        how["left"] = "given"
-    if asked.right:
-        right = _check_given(path, types, asked.right, IMAGE_TYPES, "--right-topic")
-        how["right"] = "given"
-    if asked.left and not asked.right:
-        right = _swap_side(left, "left", "right")
-        if right is None or types.get(right) not in IMAGE_TYPES:
-            raise InputError(path, f"no right image topic beside {left}; pass --right-topic")
-        how["right"] = "matches --left-topic"
-    elif asked.right and not asked.left:
-        left = _swap_side(right, "right", "left")
-        if left is None or types.get(left) not in IMAGE_TYPES:
-            raise InputError(path, f"no left image topic beside {right}; pass --left-topic")
-        how["left"] = "matches --right-topic"
-    elif not asked.left and not asked.right:
-        for left_default, right_default in zip(LEFT_IMAGE_DEFAULTS, RIGHT_IMAGE_DEFAULTS, strict=True):
-            if types.get(left_default) in IMAGE_TYPES and types.get(right_default) in IMAGE_TYPES:
-                left, right = left_default, right_default
-                how["left"] = how["right"] = "dVRK default"
-                break
-        else:
-            left, right = _detect_image_pair(path, types)
-            how["left"] = how["right"] = "auto-detected"
-    if left == right:
-        raise InputError(path, f"left and right image topics are the same ({left})")
-    return left, right
-
-
-def _swap_side(topic: str, side: str, other: str) -> str | None:
-    return topic.replace(side, other) if side in topic else None
-
-
-def _detect_image_pair(path: Path, types: dict[str, str]) -> tuple[str, str]:
-    """The image topics that differ only by left/right. Raw before compressed, unrectified before
-    rectified (the camera info describes the raw images), then the shortest name."""
-    images = [t for t, kind in types.items() if kind in IMAGE_TYPES]
-    if not images:
-        raise InputError(path, "no image topic found (no sensor_msgs/Image or sensor_msgs/CompressedImage)")
-    pairs = []
-    for left in images:
-        if "left" in left:
-            right = left.replace("left", "right")
-            if right in images:
-                pairs.append((types[left] == COMPRESSED_IMAGE, "rect" in left, len(left), left, right))
-    if not pairs:
-        raise InputError(path, f"no left/right image topic pair found among {', '.join(images)}; "
-                               "pass --left-topic and --right-topic")
-    pairs.sort()
-    if len(pairs) > 1:
-        log.warning("warning: %s: several stereo image topics; using %s and %s (others: %s)", path,
-                    pairs[0][3], pairs[0][4], ", ".join(p[3] for p in pairs[1:]))
-    return pairs[0][3], pairs[0][4]
-
-
-def camera_info_topic(image_topic: str) -> str:
-    """The CameraInfo topic ROS publishes beside an image topic: /ns/left/image_raw[/compressed] ->
-    /ns/left/camera_info."""
-    base = re.sub(r"/(compressed|theora|ffmpeg|h264)$", "", image_topic)
-    return base.rsplit("/", 1)[0] + "/camera_info"
-
-
-def _choose_info(path: Path, types: dict[str, str], asked: str | None, image_topic: str, side: str,
-                 option: str, how: dict[str, str]) -> str | None:
-    if asked:
-        how[f"{side}_info"] = "given"
-        return _check_given(path, types, asked, (CAMERA_INFO,), option)
-    beside = camera_info_topic(image_topic)
-    if types.get(beside) == CAMERA_INFO:
-        how[f"{side}_info"] = "beside the image topic"
-        return beside
-    candidates = [t for t, kind in types.items() if kind == CAMERA_INFO and side in t]
-    if len(candidates) == 1:
-        how[f"{side}_info"] = "auto-detected"
-        return candidates[0]
-    return None
-
-
-def _choose_force(path: Path, types: dict[str, str], asked: str | None, how: dict[str, str]) -> str:
-    if asked:
-        how["force"] = "given"
-        return _check_given(path, types, asked, (WRENCH_STAMPED,), "--force-topic")
-    for topic in FORCE_DEFAULTS:
-        if types.get(topic) == WRENCH_STAMPED:
-            how["force"] = "default"
-            return topic
-    wrenches = [t for t, kind in types.items() if kind == WRENCH_STAMPED]
-    not_arms = [t for t in wrenches if not set(t.strip("/").split("/")) & set(DVRK_ARM_NAMESPACES)]
-    sensor_like = [t for t in not_arms if _SENSOR_NAME.search(t)]
-    for tier in (sensor_like, not_arms):
-        if len(tier) == 1:
-            how["force"] = "auto-detected (the only force sensor WrenchStamped topic)"
-            return tier[0]
-        if len(tier) > 1:
-            raise InputError(path, f"several WrenchStamped topics could be the force sensor ({', '.join(tier)}); "
-                                   "pick one with --force-topic")
-    if wrenches:
-        raise InputError(path, f"no force sensor topic: the WrenchStamped topics ({', '.join(wrenches)}) are dVRK "
-                               "arm estimates; pass --force-topic to use one anyway")
-    raise InputError(path, f"no force topic: no geometry_msgs/WrenchStamped topic (looked for "
-                           f"{', '.join(FORCE_DEFAULTS)}); pass --force-topic")
-
-
-def _choose_pose(path: Path, types: dict[str, str], asked: str | None, how: dict[str, str]) -> str | None:
-    if asked == NO_TOPIC:
-        how["pose"] = "left out (--pose-topic none)"
-        return None
-    if asked:
-        how["pose"] = "given"
-        return _check_given(path, types, asked, POSE_TYPES, "--pose-topic")
-    for topic in POSE_DEFAULTS:
-        if types.get(topic) in POSE_TYPES:
-            how["pose"] = "dVRK default"
-            return topic
-    namespaced = [t for t, kind in types.items() if kind in POSE_TYPES and t.endswith("/ECM/measured_cp")]
-    if len(namespaced) == 1:
-        how["pose"] = "auto-detected"
-        return namespaced[0]
-    how["pose"] = "none found (the recording will have no ECM pose)"
-    return None
-
-
-# -- scanning -------------------------------------------------------------------------------------
-def header_stamp_ns(msg) -> int:
-    stamp = msg.header.stamp
-    return int(stamp.sec) * _NS + int(stamp.nanosec)
-
-
-def acquisition_ns(header_ns: np.ndarray, receive_ns: np.ndarray) -> tuple[np.ndarray, int]:
-    """header.stamp where it is set, the bag receive time where it is 0 -> (stamps, how many fell back)."""
-    header_ns = np.asarray(header_ns, dtype=np.int64)
-    unset = header_ns == 0
-    return np.where(unset, np.asarray(receive_ns, dtype=np.int64), header_ns), int(unset.sum())
-
-
-@dataclass
-class ImageStream:
-    """One image topic as scanned: stamps of every message, the look of the first one."""
-
-    topic: str
-    msgtype: str
-    header_ns: array = field(default_factory=lambda: array("q"))
-    receive_ns: array = field(default_factory=lambda: array("q"))
-    encoding: str = ""  # Image encoding, or CompressedImage format
-    width: int = 0
-    height: int = 0
-
-    @property
-    def count(self) -> int:
-        return len(self.header_ns)
-
-    @property
-    def stamps_ns(self) -> np.ndarray:
-        return acquisition_ns(np.frombuffer(self.header_ns, np.int64), np.frombuffer(self.receive_ns, np.int64))[0]
-
-    @property
-    def fallback_count(self) -> int:
-        return int((np.frombuffer(self.header_ns, np.int64) == 0).sum())
-
-
-@dataclass
-class Series:
-    """A stamped numeric series (force or pose) sorted by acquisition time, duplicates dropped."""
-
-    topic: str
-    stamps_ns: np.ndarray  # (N,) int64
-    values: np.ndarray  # (N, 6) fx fy fz tx ty tz (N, N*m), or (N, 7) x y z qx qy qz qw (m)
-    frame_id: str
-    fallback_count: int = 0
-    duplicate_count: int = 0
-
-
-@dataclass
-class BagScan:
-    path: Path
-    kind: str
-    choice: TopicChoice
-    counts: dict[str, int]
-    receive_ns: dict[str, np.ndarray]  # topic -> bag receive times (every topic scanned)
-    left: ImageStream
-    right: ImageStream
-    force: Series
-    pose: Series | None
-    left_info: object | None  # the first CameraInfo message of each side (vfdata's or rosbags')
-    right_info: object | None
-    indexed: IndexedBag | None = None  # random access to the messages, where the storage allows it
-
-
-def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: bool = False,
-             progress: bool = True) -> BagScan:
-    """Image stamps, force, pose and the first camera info of each side (and the receive times of every
-    topic when `all_topics`, for `inspect-bag`). Where the storage allows random access (ROS 1 bags
-    with uncompressed chunks, ROS 2 sqlite3 bags: `bag_index`), the images' pixels are not read here
-    and the returned scan keeps that access open for the convert pass (`BagScan.indexed`; close it
-    with `close_scan`); otherwise this is one streaming pass over the bag."""
-    types = topic_types(reader)
-    wanted = {choice.left, choice.right, choice.force, choice.left_info, choice.right_info, choice.pose} - {None}
-    topics = set(types) if all_topics else wanted
-    counts = {name: info.msgcount for name, info in reader.topics.items()}
-    left, right = ImageStream(choice.left, types[choice.left]), ImageStream(choice.right, types[choice.right])
-    images = {choice.left: left, choice.right: right}
-    infos = {choice.left_info, choice.right_info} - {None}
-    series = {choice.force: _SeriesReader(reader, path, choice.force, 6)}
-    if choice.pose is not None:
-        series[choice.pose] = _SeriesReader(reader, path, choice.pose, 7)
-    indexed = open_indexed_bag(reader, path, topics)
-    try:
-        with tqdm(total=sum(counts[t] for t in topics), desc=f"scan {path.name}", unit="msg", disable=not progress,
-                  mininterval=0.5) as bar:
-            if indexed is not None:
-                receive, first_infos = _scan_indexed(reader, path, indexed, topics, images, series, infos, bar)
-            else:
-                receive, first_infos = _scan_streaming(reader, path, topics, images, series, infos, bar)
-        for stream in (left, right):
-            if stream.count == 0:
-                raise InputError(path, f"{stream.topic} has no messages")
-        force = series[choice.force].result()
-        pose = series[choice.pose].result() if choice.pose is not None else None
-        if pose is not None:
-            norms = np.linalg.norm(pose.values[:, 3:], axis=1)
-            if (norms < 1e-6).any():
-                raise InputError(path, f"{choice.pose}: message {int(np.argmax(norms < 1e-6))}: quaternion has "
-                                       "zero length")
-            pose.values[:, 3:] /= norms[:, None]
-    except BaseException:
-        if indexed is not None:
-            indexed.close()
-        raise
-    return BagScan(path, bag_kind(path), choice, counts, receive, left, right, force, pose,
-                   first_infos.get(choice.left_info), first_infos.get(choice.right_info), indexed)
-
-
-def close_scan(scan: BagScan) -> None:
-    """Release the random access a scan kept open (a no-op for a streamed scan)."""
-    if scan.indexed is not None:
-        scan.indexed.close()
-        scan.indexed = None
-
-
-def _scan_streaming(reader: AnyReader, path: Path, topics: set[str], images: dict[str, ImageStream],
-                    series: dict[str, _SeriesReader], infos: set[str], bar: tqdm,
-                    ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-    """The scan as one pass over `rosbags`' message iterator: every image is read and deserialised."""
-    receive = {t: array("q") for t in topics}
-    first_infos: dict[str, object] = {}
-    for connection, receive_ns, raw in bag_messages(reader, path, [c for c in reader.connections if c.topic in topics]):
-        topic = connection.topic
-        receive[topic].append(receive_ns)
-        bar.update()
-        if topic in series:
-            series[topic].add(connection, receive_ns, raw)
-        elif topic in images:
-            msg = _deserialize(reader, path, raw, connection)
-            _scan_image(path, images[topic], _head_of(msg), receive_ns, lambda msg=msg: msg)
-        elif topic in infos and topic not in first_infos:  # the first message describes the camera
-            first_infos[topic] = _deserialize(reader, path, raw, connection)
-    return {t: np.frombuffer(v, np.int64) for t, v in receive.items()}, first_infos
-
-
-def _scan_indexed(reader: AnyReader, path: Path, indexed: IndexedBag, topics: set[str],
-                  images: dict[str, ImageStream], series: dict[str, _SeriesReader], infos: set[str], bar: tqdm,
-                  ) -> tuple[dict[str, np.ndarray], dict[str, object]]:
-    """The scan through random access: only the first bytes of each image (stamp, encoding, size), the
-    force and pose series in blocks, the first camera info of each side."""
-    connection_of = {c.topic: c for c in reader.connections}
-    receive = {t: indexed.receive_ns(t) for t in topics}
-
-    def load(topic: str, i: int):
-        return _deserialize(reader, path, bytes(indexed.message(topic, i)), connection_of[topic])
-
-    for topic, stream in images.items():
-        for i, receive_ns in enumerate(receive[topic].tolist()):
-            message = partial(load, topic, i)
-            head = image_head(indexed.head(topic, i), stream.msgtype, reader.is2)
-            _scan_image(path, stream, head or _head_of(message()), receive_ns, message)
-        bar.update(len(receive[topic]))
-    for topic, reader_of in series.items():
-        for receive_ns, payloads in indexed.payload_blocks(topic):
-            reader_of.add_block(connection_of[topic], receive_ns, payloads)
-            bar.update(len(receive_ns))
-    first_infos = {topic: _first_camera_info(reader, path, bytes(indexed.message(topic, 0)), connection_of[topic])
-                   for topic in infos if len(receive[topic])}
-    return receive, first_infos
-
-
-def _first_camera_info(reader: AnyReader, path: Path, raw: bytes, connection):
-    """A camera info message: a vfdata CameraInfo from little-endian CDR (ROS 2; compiling rosbags'
-    deserialiser for this one message cost ~13 ms a bag), else rosbags' message."""
-    if reader.is2:
-        try:
-            return CameraInfo.decode(raw)
-        except (CdrError, UnicodeDecodeError, ValueError):
-            pass  # e.g. big-endian CDR: rosbags reads it, or says what is wrong
-    return _deserialize(reader, path, raw, connection)
-
-
-def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[object, int, bytes]]:
-    """The reader's messages, with rosbags' errors on a damaged bag turned into one-line InputErrors."""
-    if not connections:
-        return
-    try:
-        yield from reader.messages(connections=connections)
-    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError) as exc:
-        raise InputError(path, f"damaged bag ({_first_line(exc)})") from None
-
-
-def _deserialize(reader: AnyReader, path: Path, raw: bytes, connection):
-    try:
-        return reader.deserialize(raw, connection.msgtype)
-    except (AnyReaderError, ValueError, IndexError) as exc:
-        raise InputError(path, f"{connection.topic}: message cannot be decoded ({_first_line(exc)})") from None
-
-
-def _head_of(msg) -> ImageHead:
-    """The scanned fields of a deserialised Image or CompressedImage message."""
-    if hasattr(msg, "encoding"):
-        return ImageHead(header_stamp_ns(msg), msg.encoding, int(msg.width), int(msg.height))
-    return ImageHead(header_stamp_ns(msg), msg.format)
-
-
-def _image_message_of(msg) -> ImageMessage:
-    """`bag_index.image_message` of a deserialised Image or CompressedImage message."""
-    data = memoryview(np.ascontiguousarray(msg.data, np.uint8)).cast("B")
-    if hasattr(msg, "encoding"):
-        return ImageMessage(_head_of(msg), data, int(msg.is_bigendian), int(msg.step))
-    return ImageMessage(_head_of(msg), data)
-
-
-def _scan_image(path: Path, stream: ImageStream, head: ImageHead, receive_ns: int, message: Callable[[], object],
-                ) -> None:
-    """Record one image message of `stream`; `message()` gives the whole deserialised message, needed
-    for a compressed image only (its size is known once decoded)."""
-    index = stream.count
-    stream.header_ns.append(head.stamp_ns)
-    stream.receive_ns.append(receive_ns)
-    encoding = head.encoding
-    if stream.msgtype == IMAGE:
-        width, height = head.width, head.height
-        if encoding not in RAW_ENCODINGS:
-            raise InputError(path, f"{stream.topic}: message {index}: unsupported image encoding '{encoding}' "
-                                   f"(supported: {', '.join(RAW_ENCODINGS)})")
-    else:
-        if index and encoding == stream.encoding:
-            return  # decoding every compressed image twice would cost; pass 2 checks each size
-        try:
-            image = compressed_to_bgr(encoding, message().data)
-        except UnsupportedImage as exc:
-            raise InputError(path, f"{stream.topic}: message {index}: {exc}") from None
-        height, width = image.shape[:2]
-    if index == 0:
-        stream.encoding, stream.width, stream.height = encoding, width, height
-    elif (width, height) != (stream.width, stream.height):
-        raise InputError(path, f"{stream.topic}: message {index} is {width}x{height}, the first one "
-                               f"{stream.width}x{stream.height}")
-
-
-def _pose_fields(msg):
-    """(position, orientation) of a PoseStamped or TransformStamped message."""
-    if hasattr(msg, "pose"):
-        return msg.pose.position, msg.pose.orientation
-    return msg.transform.translation, msg.transform.rotation
-
-
-class _SeriesReader:
-    """Collects a stamped force or pose series from raw payloads. At 1 kHz the per-message cost
-    matters, so messages whose body is the header and then float64s only (WrenchStamped, PoseStamped)
-    are decoded a block at a time with numpy when they have one frame_id, the usual case; other
-    messages (TransformStamped, changing frame ids) go through rosbags one by one."""
-
-    def __init__(self, reader: AnyReader, path: Path, topic: str, width: int, batch: int = 4096):
-        self.reader, self.path, self.topic, self.width, self.batch = reader, path, topic, width, batch
-        self.ros2 = reader.is2
-        self.header, self.receive, self.values, self.frames = array("q"), array("q"), array("d"), set()
-        self._raw: list[bytes] = []
-        self._connection = None
-
-    def add(self, connection, receive_ns: int, raw: bytes) -> None:
-        """One message, as the streaming scan reads them (decoded `batch` at a time)."""
-        self._connection = connection
-        self.receive.append(receive_ns)
-        self._raw.append(raw)
-        if len(self._raw) >= self.batch:
-            self._flush()
-
-    def add_block(self, connection, receive_ns: np.ndarray, payloads: np.ndarray | list[bytes]) -> None:
-        """A block of messages in bag order: payloads as an (n, L) uint8 array or a list of bytes."""
-        self._flush()
-        self._connection = connection
-        self.receive.frombytes(np.asarray(receive_ns, np.int64).tobytes())
-        self._decode(payloads)
-
-    def _flush(self) -> None:
-        raws, self._raw = self._raw, []
-        if raws:
-            self._decode(raws)
-
-    def _decode(self, payloads: np.ndarray | list[bytes]) -> None:
-        decoded = None
-        # By the connection's type, not a deserialised first message: compiling rosbags' deserialiser
-        # for it cost ~8 ms a bag.
-        if self._connection.msgtype in (WRENCH_STAMPED, POSE_STAMPED):
-            decoded = _decode_fixed_batch(payloads, self.width, self.ros2)
-        if decoded is not None:
-            stamps, values, frame_id = decoded
-            self.header.frombytes(stamps.astype(np.int64).tobytes())
-            self.values.frombytes(np.ascontiguousarray(values, np.float64).tobytes())
-            self.frames.add(frame_id)
-            return
-        for raw in payloads:
-            msg = _deserialize(self.reader, self.path, bytes(raw), self._connection)
-            self.header.append(header_stamp_ns(msg))
-            if hasattr(msg, "wrench"):
-                f, t = msg.wrench.force, msg.wrench.torque
-                self.values.extend((f.x, f.y, f.z, t.x, t.y, t.z))
-            else:
-                p, q = _pose_fields(msg)
-                self.values.extend((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
-            self.frames.add(msg.header.frame_id)
-
-    def result(self) -> Series:
-        """The series sorted by acquisition time, repeated stamps dropped; InputError on NaN."""
-        self._flush()
-        if len(self.header) == 0:
-            raise InputError(self.path, f"{self.topic} has no messages")
-        stamps, fallback = acquisition_ns(np.frombuffer(self.header, np.int64), np.frombuffer(self.receive, np.int64))
-        table = np.frombuffer(self.values, np.float64).reshape(-1, self.width).copy()
-        bad = ~np.isfinite(table).all(axis=1)
-        if bad.any():
-            raise InputError(self.path, f"{self.topic}: message {int(np.argmax(bad))}: NaN or inf value")
-        order = np.argsort(stamps, kind="stable")
-        stamps, table = stamps[order], table[order]
-        keep = np.concatenate([[True], np.diff(stamps) > 0])
-        frames = self.frames - {""}
-        frame_id = frames.pop() if len(frames) == 1 else ""
-        return Series(self.topic, stamps[keep], table[keep], frame_id, fallback, int((~keep).sum()))
-
-
-def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2: bool,
-                        ) -> tuple[np.ndarray, np.ndarray, str] | None:
-    """Header stamps (N,) and values (N, n_doubles) of messages that are a std_msgs/Header and then
-    `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes), and their one
-    frame_id; None when they do not fit that layout."""
-    if isinstance(payloads, list):
-        length = len(payloads[0])
-        if any(len(raw) != length for raw in payloads):
-            return None
-        table = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
-    else:
-        table = payloads
-    count, length = table.shape
-    # One frame_id for the whole block (its length and bytes after the stamp), as the caller assumes.
-    name_length = int(table[0, 12:16].copy().view("<u4")[0]) if length >= 16 else 0
-    name = slice(12, 16 + name_length)
-    if length < 16 or 16 + name_length > length or (table[:, name] != table[0, name]).any():
-        return None
-    try:  # CDR strings end with a NUL that ROS 1 strings do not have
-        frame_id = table[0, 16:16 + name_length].tobytes().rstrip(b"\0").decode("utf-8")
-    except UnicodeDecodeError:
-        return None
-    if ros2:
-        try:
-            stamps, values = (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
-        except CdrError:
-            return None
-        return stamps, values, frame_id
-    # ROS 1: uint32 seq, uint32 sec, uint32 nsec, uint32 length + frame_id, float64s (no alignment).
-    if 16 + name_length + 8 * n_doubles != length:
-        return None
-    sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
-    nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
-    values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * _NS + nanosec, values, frame_id
 
 
 # -- pairing --------------------------------------------------------------------------------------
@@ -832,60 +220,6 @@ def camera_model(scan: BagScan, calibration: StereoCalibration | None, calibrati
     return left, right, tf, f"camera_info topics {choice.left_info}, {choice.right_info}"
 
 
-# -- images ---------------------------------------------------------------------------------------
-def raw_image_to_bgr(height: int, width: int, encoding: str, is_bigendian: int, step: int,
-                     data: np.ndarray | bytes) -> np.ndarray:
-    """sensor_msgs/Image fields -> (height, width, 3) BGR uint8. 16-bit values are scaled to 8 bits
-    over their full range (v * 255 / 65535); Bayer mosaics are demosaiced (bilinear)."""
-    if encoding not in RAW_ENCODINGS:
-        raise UnsupportedImage(f"unsupported image encoding '{encoding}'")
-    channels, depth = RAW_ENCODINGS[encoding]
-    row_bytes = width * channels * depth
-    buffer = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
-    if step < row_bytes or len(buffer) < step * (height - 1) + row_bytes:
-        raise UnsupportedImage(f"{encoding} image of {width}x{height} needs {row_bytes} bytes a row, "
-                               f"has step {step} and {len(buffer)} bytes")
-    if len(buffer) < step * height:  # the last row may lack its padding
-        buffer = np.concatenate([buffer, np.zeros(step * height - len(buffer), np.uint8)])
-    rows = buffer[: step * height].reshape(height, step)[:, :row_bytes]
-    if depth == 2:
-        pixels = np.ascontiguousarray(rows).view(">u2" if is_bigendian else "<u2").astype(np.uint16)
-        pixels = ((pixels.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
-    else:
-        pixels = rows
-    family = _ENCODING_FAMILY.get(encoding)
-    if family in ("uyvy", "yuyv"):
-        image = pixels.reshape(height, width, 2)
-    else:
-        image = pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
-    image = np.ascontiguousarray(image)
-    if family is None:  # bgr8, 8UC3, bgr16
-        return image
-    return cv2.cvtColor(image, _COLOR_CODES[family])
-
-
-def compressed_format(fmt: str) -> str:
-    """The codec of a CompressedImage `format` ('jpeg', 'png', or image_transport's 'rgb8; jpeg
-    compressed bgr8') -> 'jpeg' or 'png'."""
-    text = fmt.lower()
-    if "compresseddepth" in text:
-        raise UnsupportedImage(f"unsupported image format '{fmt}' (compressedDepth is a depth image)")
-    if "jpeg" in text or "jpg" in text:
-        return "jpeg"
-    if "png" in text:
-        return "png"
-    raise UnsupportedImage(f"unsupported image format '{fmt}' (expected jpeg or png)")
-
-
-def compressed_to_bgr(fmt: str, data: np.ndarray | bytes) -> np.ndarray:
-    """CompressedImage data -> BGR uint8 (image_transport compresses colour images as bgr8)."""
-    compressed_format(fmt)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if image is None:
-        raise UnsupportedImage(f"{fmt} image data cannot be decoded")
-    return image
-
-
 # -- conversion -----------------------------------------------------------------------------------
 def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, options: ConvertOptions | None = None,
                 topics: BagTopics | None = None, calibration: str | Path | None = None,
@@ -992,7 +326,7 @@ def _stereo_messages(reader: AnyReader, scan: BagScan, plan: PairPlan,
     next_k = 0
     for connection, receive_ns, raw in bag_messages(reader, scan.path, connections):
         side = side_of[connection.topic]
-        stamp = header_stamp_ns(_deserialize(reader, scan.path, raw, connection)) or receive_ns
+        stamp = header_stamp_ns(deserialize(reader, scan.path, raw, connection)) or receive_ns
         k = wanted[side].pop(stamp, None)
         if k is None:
             continue  # unpaired, or a repeated stamp whose first message was taken
@@ -1038,7 +372,7 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         raw = fetch()
         msg = image_message(raw, stream.msgtype, reader.is2)
         if msg is None:  # e.g. big-endian CDR: rosbags' deserialiser
-            msg = _image_message_of(_deserialize(reader, scan.path, raw, connection_of[stream.topic]))
+            msg = image_message_of(deserialize(reader, scan.path, raw, connection_of[stream.topic]))
         encoding = msg.head.encoding
         try:
             if stream.msgtype == COMPRESSED_IMAGE:
@@ -1145,28 +479,3 @@ class _SeriesWriter:
             self.writer.write_payloads(self.topic, self.msgtype, stamps[rows],
                                        stamped_payload_table(stamps[rows], self.frame_id, self.series.values[rows]))
         self.done = stop
-
-
-def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
-    """Bag receive times (ns) of every topic, reading the whole bag."""
-    times: dict[str, array] = {}
-    with tqdm(total=reader.message_count, desc=f"read {path.name}", unit="msg", disable=not progress,
-              mininterval=0.5) as bar:
-        for connection, receive_ns, _raw in bag_messages(reader, path, reader.connections):
-            times.setdefault(connection.topic, array("q")).append(receive_ns)
-            bar.update()
-    return {topic: np.frombuffer(values, np.int64) for topic, values in times.items()}
-
-
-def topic_rates_hz(receive_ns: dict[str, np.ndarray]) -> dict[str, float]:
-    """Mean message rate of each topic over its receive times (0 for fewer than two messages)."""
-    rates = {}
-    for topic, times in receive_ns.items():
-        span = (int(times.max()) - int(times.min())) / 1e9 if len(times) > 1 else 0.0
-        rates[topic] = (len(times) - 1) / span if span > 0 else 0.0
-    return rates
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return text.splitlines()[0]
