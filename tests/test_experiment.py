@@ -142,13 +142,16 @@ def test_reports_from_run_folders(tmp_path):
 
 def test_claims_flag_a_failed_claim():
     agg = {name: {"value": {"rmse": rmse}} for name, rmse in
-           (("proposed", 0.8), ("camera_frame", 1.0), ("velocity_only", 0.7), ("canonical_side", 0.45))}
+           (("proposed", 0.8), ("camera_frame", 1.0), ("velocity_only", 0.7), ("canonical_side", 0.45),
+            ("klt", 0.6), ("geometry_plus", 0.5))}
     result = experiment.claims(agg)
     assert result["object_frame_halves_rmse"]["holds"] is False
     assert result["object_frame_halves_rmse"]["reduction"] == pytest.approx(0.2)
     assert result["beats_velocity_only"]["holds"] is False
     assert result["object_frame_halves_rmse_canonical_side"]["holds"] is True
     assert result["object_frame_halves_rmse_canonical_side"]["reduction"] == pytest.approx(0.55)
+    assert result["geometry_beats_klt"]["holds"] is False
+    assert result["geometry_plus_beats_klt"]["holds"] is True
 
 
 @pytest.mark.slow

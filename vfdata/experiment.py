@@ -79,10 +79,14 @@ SIMULATOR_VARIANTS: dict[str, Variant] = {v.name: v for v in (
             tracker="groundtruth"),
 )}
 # Beyond the paper, also only on request: the proposed model with every recording mirrored to the
-# flank of the tissue its first frame shows (`ForceClipDataset(canonical_side=True)`).
+# flank of the tissue its first frame shows (`ForceClipDataset(canonical_side=True)`), and the
+# proposed model on the tracks of `geometry+` (the geometry tracker that also follows the image texture
+# along the surface, docs/tracking.md).
 EXTRA_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("canonical_side", "Proposed, mirrored to the seen flank (beyond the paper)",
             "proposed_canonical_side.yaml"),
+    Variant("geometry_plus", "Proposed on geometry+ tracks (beyond the paper)", "proposed.yaml",
+            tracker="geometry+"),
 )}
 ALL_VARIANTS: dict[str, Variant] = {**VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS}
 
@@ -458,6 +462,7 @@ def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
            "mirrored to the seen flank (beyond the paper), the object frame lowers the average RMSE by >= 50% "
            "vs the camera frame")
     compare("geometry_beats_klt", "proposed", "klt", text="geometry tracking beats KLT")
+    compare("geometry_plus_beats_klt", "geometry_plus", "klt", text="geometry+ tracking (beyond the paper) beats KLT")
     compare("beats_position_only", "proposed", "position_only", text="position + velocity beats position only")
     compare("beats_velocity_only", "proposed", "velocity_only", text="position + velocity beats velocity only")
     compare("beats_rgb", "proposed", "rgb", text="proposed beats RGB only")

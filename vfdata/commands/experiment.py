@@ -9,7 +9,7 @@ from pathlib import Path
 VARIANT_NAMES = ("proposed", "camera_frame", "klt", "point_cloud", "position_only", "velocity_only", "top_bottom",
                  "rgb", "depth_vit")
 SIMULATOR_VARIANT_NAMES = ("groundtruth", "camera_frame_groundtruth")
-EXTRA_VARIANT_NAMES = ("canonical_side",)
+EXTRA_VARIANT_NAMES = ("canonical_side", "geometry_plus")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     + ", ".join(VARIANT_NAMES) + "; on simulated recordings, only when named: "
                     + ", ".join(SIMULATOR_VARIANT_NAMES) + " (the simulator's true tracks); beyond the paper, "
                     "only when named: " + ", ".join(EXTRA_VARIANT_NAMES) + " (each recording mirrored to the flank "
-                    "of the tissue its first frame shows).")
+                    "of the tissue its first frame shows; the tracks of the geometry+ tracker).")
     p.add_argument("manifest", type=Path, help="dataset manifest, e.g. datasets/glove.manifest.yaml")
     p.add_argument("--out", type=Path, required=True, help="results folder, e.g. results/glove")
     p.add_argument("--seeds", type=int, default=3, help="seeds per variant (default 3)")
