@@ -99,6 +99,23 @@ def test_rgb_r3d_shapes_and_random_init():
         RGBResNet3D(norm="layer")
 
 
+def test_rgb_convolutions_run_in_float32_under_cpu_bf16_autocast():
+    """PyTorch's CPU bf16 Conv3d backward now and then gives weight gradients of ~1e31 (seen with a
+    bare nn.Conv3d; the RGB baseline went to NaN within 30 steps of bf16-mixed training on colon), so
+    the backbone leaves CPU autocast off: its convolutions see and give float32."""
+    torch.manual_seed(0)
+    model = RGBResNet3D()
+    dtypes = []
+    for module in model.modules():
+        if isinstance(module, nn.Conv3d):
+            module.register_forward_hook(lambda mod, inputs, output: dtypes.append(output.dtype))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = model(torch.randint(0, 256, (1, 8, 3, 16, 16), dtype=torch.uint8))
+    out.float().sum().backward()
+    assert dtypes and set(dtypes) == {torch.float32}
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
 def test_rgb_backbone_sees_normalised_input_through_the_regressor():
     """The RGB datamodule gives no input statistics, so the regressor hands the clips on as float
     0-255; the backbone must still see roughly zero-mean, unit-scale values (it saw std ~330)."""

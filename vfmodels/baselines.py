@@ -115,7 +115,11 @@ class RGBResNet3D(nn.Module):
     def forward(self, images: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
         t = images.shape[1]
         x = (images.float().transpose(1, 2) - self.mean) / self.std  # (B, 3, T, H, W)
-        f = self.features(x).mean(dim=(3, 4))  # (B, 512, T')
+        # PyTorch's CPU bf16 Conv3d backward now and then returns weight gradients of ~1e31 (a bare
+        # nn.Conv3d shows it, tests/test_models_baselines.py): training diverged to NaN within 30 steps under
+        # bf16-mixed. On the CPU the 3D convolutions therefore run in float32 whatever the autocast.
+        with torch.autocast("cpu", enabled=False):  # CPU autocast only: a GPU's stays as it is
+            f = self.features(x).mean(dim=(3, 4))  # (B, 512, T')
         f = F.interpolate(f, size=t, mode="linear", align_corners=False)
         return self.heads(f.transpose(1, 2))
 
