@@ -464,8 +464,9 @@ def plot_training_curves(curves: Mapping[str, Mapping[str, np.ndarray]], path: s
     that testing uses. The legend gives the epochs and the summed epoch wall time."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(8, 4.2))
+    palette = plt.get_cmap("tab10" if len(curves) <= 10 else "tab20")  # a full grid has 11 or more runs
     for k, (label, run) in enumerate(curves.items()):
-        colour = f"C{k % 10}"
+        colour = palette(k % palette.N)
         epochs = np.asarray(run["epoch"])
         minutes = np.nansum(run["time/epoch_s"]) / 60.0
         ax.plot(epochs, run["train/loss_epoch"], color=colour, alpha=0.5, linestyle="--")
