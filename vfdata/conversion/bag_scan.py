@@ -259,6 +259,7 @@ def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[o
 
 
 def deserialize(reader: AnyReader, path: Path, raw: bytes, connection):
+    """One raw message through rosbags' deserialiser; a message it cannot read is a one-line InputError."""
     try:
         return reader.deserialize(raw, connection.msgtype)
     except (AnyReaderError, ValueError, IndexError) as exc:
