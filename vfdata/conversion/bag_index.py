@@ -28,7 +28,8 @@ import numpy as np
 import yaml
 from rosbags.highlevel import AnyReader
 
-_NS = 1_000_000_000
+from vfdata.recording.messages import NS_PER_S
+
 _U32 = struct.Struct("<I")
 _I32 = struct.Struct("<i")
 IMAGE = "sensor_msgs/msg/Image"
@@ -120,7 +121,7 @@ def _read_image(buf: bytes | memoryview, msgtype: str, ros2: bool, whole: bool):
         else:
             r.u32()  # seq
             sec = r.u32()
-        stamp = sec * _NS + r.u32()
+        stamp = sec * NS_PER_S + r.u32()
         r.string()  # frame_id
         if msgtype == COMPRESSED_IMAGE:
             head, layout = ImageHead(stamp, r.string()), {}
@@ -345,7 +346,7 @@ def _ros1_refs(buffer: mmap.mmap, data: np.ndarray, chunks: tuple[np.ndarray, np
         nsec = headers[:, time_at + 4:time_at + 8].copy().view("<u4").ravel().astype(np.int64)
         if not ((headers[:, fixed] == template[fixed]).all() and (headers[:, op_at] == _OP_MSG_DATA).all()
                 and (headers[:, conn_at:conn_at + 4].copy().view("<u4").ravel() == conn[block]).all()
-                and (sec * _NS + nsec == receive[block]).all()):
+                and (sec * NS_PER_S + nsec == receive[block]).all()):
             return None
         positions[block] = rec + 8 + header_len
         lengths[block] = _u32_at(data, rec + 4 + header_len)

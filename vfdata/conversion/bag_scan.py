@@ -28,9 +28,7 @@ from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, WRENCH_STAMPED, To
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError
 from vfdata.recording.cdr import CdrError
-from vfdata.recording.messages import CameraInfo, decode_pose_batch, decode_wrench_batch
-
-_NS = 1_000_000_000
+from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, decode_wrench_batch
 
 
 # -- opening -------------------------------------------------------------------------------------
@@ -77,7 +75,7 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
 # -- scanning -------------------------------------------------------------------------------------
 def header_stamp_ns(msg) -> int:
     stamp = msg.header.stamp
-    return int(stamp.sec) * _NS + int(stamp.nanosec)
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def acquisition_ns(header_ns: np.ndarray, receive_ns: np.ndarray) -> tuple[np.ndarray, int]:
@@ -424,7 +422,7 @@ def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2
     sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
     nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
     values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * _NS + nanosec, values, frame_id
+    return sec * NS_PER_S + nanosec, values, frame_id
 
 
 def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:

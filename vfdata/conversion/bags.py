@@ -73,6 +73,7 @@ from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, co
 from vfdata.errors import InputError
 from vfdata.recording import layout
 from vfdata.recording.messages import (
+    NS_PER_S,
     CameraInfo,
     CompressedImage,
     PoseStamped,
@@ -84,7 +85,6 @@ from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 
 log = logging.getLogger(__name__)
 
-_NS = 1_000_000_000
 _STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
 _U32 = struct.Struct("<I")
 
@@ -347,7 +347,7 @@ def _same(value):
 def restamped(payload: bytes, stamp_ns: int) -> bytes:
     """A CDR payload of a message that starts with a std_msgs/Header, with header.stamp set to
     `stamp_ns` (sec and nanosec are bytes 4..12, after the encapsulation header)."""
-    sec, nanosec = divmod(int(stamp_ns), _NS)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return payload[:4] + _STAMP.pack(sec, nanosec) + payload[12:]
 
 
@@ -443,7 +443,7 @@ def stamped_payload_table(stamps_ns: np.ndarray, frame_id: str, values: np.ndarr
     body = head + (-(head - 4)) % 8  # float64s align to 8 counted after the encapsulation
     table = np.zeros((len(stamps_ns), body + 8 * values.shape[1]), np.uint8)
     table[:, 1] = 1  # 00 01 00 00: little-endian CDR
-    sec, nanosec = np.divmod(stamps_ns, _NS)
+    sec, nanosec = np.divmod(stamps_ns, NS_PER_S)
     table[:, 4:8] = sec.astype("<i4")[:, None].view(np.uint8)
     table[:, 8:12] = nanosec.astype("<u4")[:, None].view(np.uint8)
     table[:, 12:16] = np.frombuffer(np.uint32(len(name)).astype("<u4").tobytes(), np.uint8)

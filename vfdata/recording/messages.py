@@ -12,11 +12,11 @@ import numpy as np
 
 from vfdata.recording.cdr import CdrError, CdrReader, CdrWriter
 
-_NS = 1_000_000_000
+NS_PER_S = 1_000_000_000  # ROS time is (sec, nanosec); vfdata's stamps are int ns
 
 
 def _write_header(w: CdrWriter, stamp_ns: int, frame_id: str) -> None:
-    sec, nanosec = divmod(int(stamp_ns), _NS)
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     w.int32(sec)
     w.uint32(nanosec)
     w.string(frame_id)
@@ -25,7 +25,7 @@ def _write_header(w: CdrWriter, stamp_ns: int, frame_id: str) -> None:
 def _read_header(r: CdrReader) -> tuple[int, str]:
     sec = r.int32()
     nanosec = r.uint32()
-    return sec * _NS + nanosec, r.string()
+    return sec * NS_PER_S + nanosec, r.string()
 
 
 @dataclass
@@ -321,7 +321,7 @@ def _batch_fixed_tail(payloads: np.ndarray, n_doubles: int) -> tuple[np.ndarray,
     if body + 8 * n_doubles != length:
         raise CdrError(f"payload of {length} bytes does not match its frame_id length {str_len}")
     values = payloads[:, body:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * _NS + nanosec, values
+    return sec * NS_PER_S + nanosec, values
 
 
 def decode_wrench_batch(payloads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
