@@ -8,8 +8,8 @@ Runs alternate (bare, conversion, bare, ...) so both see the same load; prints e
 median rates and CPU times, and their ratios (target >= 0.7). On a machine shared with other jobs the
 CPU-time ratio is the steadier figure: with as many threads as cores, the wall ratio tends to it.
 
-    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2] [--force-hz 1000]
-                               [--repeat 3]
+    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2 [--storage mcap]]
+                               [--force-hz 1000] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
@@ -54,7 +55,8 @@ def tissue_like_frames(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarr
     return frames
 
 
-def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: bool, force_hz: float) -> None:
+def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: bool, force_hz: float,
+              storage: str = "sqlite3") -> None:
     ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
     T = ts.types
     serialize = ts.serialize_cdr if ros2 else ts.serialize_ros1
@@ -64,7 +66,8 @@ def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: boo
         fields = {"stamp": time_msg, "frame_id": frame} if ros2 else {"seq": 0, "stamp": time_msg, "frame_id": frame}
         return T["std_msgs/msg/Header"](**fields)
 
-    writer = Writer2(path, version=9) if ros2 else Writer1(path)
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    writer = Writer2(path, version=9, storage_plugin=plugin) if ros2 else Writer1(path)
     with writer:
         image_type, wrench_type = "sensor_msgs/msg/Image", "geometry_msgs/msg/WrenchStamped"
         left_c = writer.add_connection("/jhu_daVinci/left/image_raw", image_type, typestore=ts)
@@ -114,7 +117,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2, help="encoding threads for both (default 2)")
     parser.add_argument("--convert-workers", type=int, default=None,
                         help="encoding threads of the conversion only (default: --workers)")
-    parser.add_argument("--ros2", action="store_true", help="write a ROS 2 (sqlite3) bag instead of ROS 1")
+    parser.add_argument("--ros2", action="store_true", help="write a ROS 2 bag instead of ROS 1")
+    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
+                        help="storage of the ROS 2 bag (default sqlite3; mcap is the default of ROS 2 Iron onwards)")
     parser.add_argument("--force-hz", type=float, default=1000.0, help="WrenchStamped rate (default 1000 Hz)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, alternating; medians are reported "
                                                               "(default 3)")
@@ -125,7 +130,7 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / ("bench" if args.ros2 else "bench.bag")
-        write_bag(bag, frames, args.ros2, args.force_hz)
+        write_bag(bag, frames, args.ros2, args.force_hz, args.storage)
         size = sum(p.stat().st_size for p in bag.rglob("*")) if bag.is_dir() else bag.stat().st_size
         options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, progress=False,
                                  workers=args.convert_workers or args.workers)
@@ -145,7 +150,7 @@ def main() -> None:
     n = args.frames
     bare_wall, bare_cpu = (statistics.median(b[i] for b in bare) for i in range(2))
     conv_wall, conv_cpu, main_cpu = (statistics.median(c[i] for c in convert) for i in range(3))
-    print(f"bag: {'ROS 2 sqlite3' if args.ros2 else 'ROS 1'}, {n} stereo frames bgr8 {WIDTH}x{HEIGHT}, "
+    print(f"bag: {f'ROS 2 {args.storage}' if args.ros2 else 'ROS 1'}, {n} stereo frames bgr8 {WIDTH}x{HEIGHT}, "
           f"{size / 1e6:.0f} MB, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; {args.workers} threads "
           f"(conversion: {options.workers}); "
           f"{os.cpu_count()} CPUs, load average {load:.1f}")

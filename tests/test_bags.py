@@ -16,7 +16,7 @@ import pytest
 from mcap.reader import make_reader
 from rawfixtures import calibration
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
@@ -63,6 +63,7 @@ class BagSpec:
     zero_stamps: bool = False  # image headers left at 0
     with_images: bool = True
     lz4: bool = False  # ROS 1 chunk compression
+    zstd: bool = False  # MCAP storage chunk compression (`ros2 bag record --storage-preset-profile zstd_fast`)
     # filled in
     images: list = field(default_factory=list)
     frame_ns: np.ndarray | None = None
@@ -171,6 +172,8 @@ def write_bag(path: Path, spec: BagSpec) -> BagSpec:
     messages.sort(key=lambda m: m[0])
     if spec.ros2:
         writer = Writer2(path, version=9, storage_plugin=spec.storage)
+        if spec.zstd:
+            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         serialize = ts.serialize_cdr
     else:
         writer = Writer1(path)
@@ -471,7 +474,8 @@ def test_cli_convert_bag(tmp_path, capsys):
 
 
 # -- random access (bag_index), bulk decoding and bulk writing ----------------------------------------
-def bag_with_every_shape(path: Path, ros2: bool, lz4: bool = False) -> None:
+def bag_with_every_shape(path: Path, ros2: bool, lz4: bool = False,
+                         storage: StoragePlugin = StoragePlugin.SQLITE3) -> None:
     """A small bag with Image and CompressedImage messages whose frame_id and encoding lengths cover
     every CDR alignment, force from two publishers of one topic (ROS 1), and both pose types."""
     ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
@@ -485,7 +489,7 @@ def bag_with_every_shape(path: Path, ros2: bool, lz4: bool = False) -> None:
 
     vec = T["geometry_msgs/msg/Vector3"]
     quat = T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.6, w=0.8)
-    writer = Writer2(path, version=9) if ros2 else Writer1(path)
+    writer = Writer2(path, version=9, storage_plugin=storage) if ros2 else Writer1(path)
     if lz4:
         writer.set_compression(Writer1.CompressionFormat.LZ4)
     with writer:
@@ -529,10 +533,14 @@ def iterated(reader, topic: str) -> list[tuple[int, bytes]]:
     return [(t, bytes(raw)) for _, t, raw in reader.messages(connections=connections)]
 
 
-@pytest.mark.parametrize("ros2", [False, True])
-def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2):
+INDEXED = [(False, StoragePlugin.SQLITE3), (True, StoragePlugin.SQLITE3), (True, StoragePlugin.MCAP)]
+INDEXED_IDS = ["ros1", "ros2-sqlite3", "ros2-mcap"]
+
+
+@pytest.mark.parametrize("ros2, storage", INDEXED, ids=INDEXED_IDS)
+def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2, storage):
     bag = tmp_path / ("b" if ros2 else "b.bag")
-    bag_with_every_shape(bag, ros2)
+    bag_with_every_shape(bag, ros2, storage=storage)
     with bag_scan.open_bag(bag) as reader:
         topics = set(reader.topics)
         indexed = bag_index.open_indexed_bag(reader, bag, topics)
@@ -553,13 +561,13 @@ def test_indexed_access_matches_rosbags_iterator(tmp_path, ros2):
             indexed.close()
 
 
-@pytest.mark.parametrize("ros2", [False, True])
-def test_indexed_access_from_several_threads(tmp_path, ros2):
+@pytest.mark.parametrize("ros2, storage", INDEXED, ids=INDEXED_IDS)
+def test_indexed_access_from_several_threads(tmp_path, ros2, storage):
     """The encoding threads fetch their images themselves: from two threads at once every message
-    comes back whole (a ROS 2 bag gives each thread its own sqlite connections, which sqlite would
+    comes back whole (a sqlite3 bag gives each thread its own connections, which sqlite would
     otherwise take in turns), and closing the bag closes them all."""
     bag = tmp_path / ("b" if ros2 else "b.bag")
-    bag_with_every_shape(bag, ros2)
+    bag_with_every_shape(bag, ros2, storage=storage)
     with bag_scan.open_bag(bag) as reader:
         topics = set(reader.topics)
         expect = {topic: iterated(reader, topic) for topic in topics}
@@ -569,7 +577,7 @@ def test_indexed_access_from_several_threads(tmp_path, ros2):
             got = list(pool.map(lambda job: bytes(indexed.message(*job)), jobs))
             assert got == [expect[topic][i][1] for topic, i in jobs]
             indexed.close()
-            if ros2:  # closed for the threads that read, and for a thread that comes after
+            if storage == StoragePlugin.SQLITE3 and ros2:  # closed for the threads that read, and after
                 for thread in (pool, ThreadPoolExecutor(1)):
                     with pytest.raises(sqlite3.ProgrammingError):
                         thread.submit(indexed.message, *jobs[0]).result()
@@ -577,8 +585,8 @@ def test_indexed_access_from_several_threads(tmp_path, ros2):
 
 def test_indexed_access_only_where_cheap(tmp_path):
     bag_with_every_shape(tmp_path / "lz4.bag", ros2=False, lz4=True)
-    write_bag(tmp_path / "mcap", BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=2))
-    for bag in (tmp_path / "lz4.bag", tmp_path / "mcap"):
+    write_bag(tmp_path / "zstd", BagSpec(ros2=True, storage=StoragePlugin.MCAP, zstd=True, frames=2))
+    for bag in (tmp_path / "lz4.bag", tmp_path / "zstd"):
         with bag_scan.open_bag(bag) as reader:
             assert bag_index.open_indexed_bag(reader, bag, set(reader.topics)) is None
 
@@ -640,14 +648,14 @@ def test_bulk_series_decoding_matches_deserialisation(tmp_path, ros2):
         assert len(result.stamps_ns) == 9 * 20 and result.frame_id == ""  # two frame ids: none kept
 
 
-@pytest.mark.parametrize("ros2", [False, True])
-def test_indexed_and_streamed_conversions_are_identical(tmp_path, ros2):
-    """The random-access path and rosbags' iterator (used for lz4 ROS 1 chunks and MCAP storage) give
-    the same recording, message by message."""
+@pytest.mark.parametrize("ros2, storage", INDEXED, ids=INDEXED_IDS)
+def test_indexed_and_streamed_conversions_are_identical(tmp_path, ros2, storage):
+    """The random-access path and rosbags' iterator (used for lz4 ROS 1 chunks and zstd MCAP chunks)
+    give the same recording, message by message."""
     fast, slow = tmp_path / ("fast" if ros2 else "fast.bag"), tmp_path / ("slow" if ros2 else "slow.bag")
-    spec = BagSpec(ros2=ros2, extra_right_ns=(T0_NS + FRAME_NS // 2,), pose_type="TransformStamped")
+    spec = BagSpec(ros2=ros2, storage=storage, extra_right_ns=(T0_NS + FRAME_NS // 2,), pose_type="TransformStamped")
     write_bag(fast, spec)
-    write_bag(slow, BagSpec(ros2=ros2, storage=StoragePlugin.MCAP, lz4=not ros2,
+    write_bag(slow, BagSpec(ros2=ros2, storage=StoragePlugin.MCAP, lz4=not ros2, zstd=ros2,
                             extra_right_ns=spec.extra_right_ns, pose_type="TransformStamped"))
     with bag_scan.open_bag(fast) as reader:
         assert bag_index.open_indexed_bag(reader, fast, set(reader.topics)) is not None
@@ -672,7 +680,7 @@ def test_damaged_record_falls_back_to_rosbags_and_its_error(tmp_path):
     write_bag(bag, BagSpec(frames=3))
     with bag_scan.open_bag(bag) as reader:
         indexed = bag_index.open_indexed_bag(reader, bag, {"/netft_data"})
-        position = int(indexed._refs["/netft_data"][1][10])  # data of the 11th force message
+        position = int(indexed._refs["/netft_data"][2][10])  # data of the 11th force message
         indexed.close()
     data = bytearray(bag.read_bytes())
     record = data.rfind(b"op=\x02", 0, position)  # its record header's op field
@@ -682,6 +690,24 @@ def test_damaged_record_falls_back_to_rosbags_and_its_error(tmp_path):
         assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
     with pytest.raises(InputError, match="damaged bag"):
         convert_bag(bag, tmp_path / "d.mcap", options=PNG)
+
+
+def test_mcap_record_that_disagrees_with_its_index_falls_back_to_rosbags(tmp_path):
+    bag = tmp_path / "m"
+    spec = write_bag(bag, BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=3))
+    with bag_scan.open_bag(bag) as reader:
+        indexed = bag_index.open_indexed_bag(reader, bag, {"/netft_data"})
+        assert isinstance(indexed, bag_index._McapBag)
+        position = int(indexed._refs["/netft_data"][2][10])  # data of the 11th force message
+        indexed.close()
+    (file,) = bag.glob("*.mcap")
+    data = bytearray(file.read_bytes())
+    channel_at = position - bag_index._MCAP_MESSAGE_FIXED  # channel id, then sequence and the two times
+    data[channel_at] ^= 0x7F
+    file.write_bytes(bytes(data))
+    with bag_scan.open_bag(bag) as reader:
+        assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
+        assert bag_index.open_indexed_bag(reader, bag, {spec.left}) is not None  # only the topics asked for
 
 
 def test_payload_helpers_match_message_encoding():

@@ -1,6 +1,7 @@
-"""Random access to the raw messages of a bag, for the storages where it is cheap: ROS 1 bags with
-uncompressed chunks (the file is memory-mapped; a message is a slice of it, copied by nobody) and
-ROS 2 sqlite3 bags (a message is a row, read as a blob, its first bytes alone when that is enough).
+"""Random access to the raw messages of a bag, for the storages where it is cheap: ROS 1 bags and
+ROS 2 bags in MCAP storage whose chunks are uncompressed (the files are memory-mapped; a message is a
+slice of them, copied by nobody), and ROS 2 sqlite3 bags (a message is a row, read as a blob, its
+first bytes alone when that is enough).
 
 `rosbags` still opens the bag, checks it and deserialises the messages; this module only replaces
 its message iterator where the conversion needs more than an iterator gives:
@@ -9,10 +10,10 @@ its message iterator where the conversion needs more than an iterator gives:
 - a 1 kHz force series as a few blocks of equal-length payloads, decoded with numpy, instead of one
   Python object per message.
 
-`open_indexed_bag` returns None for every other storage (ROS 1 bags with bz2/lz4 chunks, ROS 2 MCAP
-storage, compressed ROS 2 bags) and for anything that does not look exactly as expected; the
-converter then reads the bag through `rosbags`' iterator, which also gives the clear errors for a
-damaged bag."""
+`open_indexed_bag` returns None for every other storage (ROS 1 bags with bz2/lz4 chunks, MCAP
+storage with zstd/lz4 chunks or without a summary, compressed ROS 2 bags) and for anything that does
+not look exactly as expected; the converter then reads the bag through `rosbags`' iterator, which
+also gives the clear errors for a damaged bag."""
 
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from vfdata.recording.messages import NS_PER_S
@@ -172,8 +175,12 @@ def open_indexed_bag(reader: AnyReader, path: Path, topics: set[str]) -> Indexed
     try:
         if not reader.is2:
             return _Ros1Bag.open(reader, topics)
-        return _SqliteBag.open(path, reader, topics)
-    except (OSError, ValueError, IndexError, KeyError, struct.error, sqlite3.Error, yaml.YAMLError):
+        storage = _ros2_storage(path)
+        if storage is None:
+            return None
+        kind, files = storage
+        return _SqliteBag.open(files, topics) if kind == "sqlite3" else _McapBag.open(files, topics)
+    except (OSError, ValueError, IndexError, KeyError, struct.error, sqlite3.Error, yaml.YAMLError, McapError):
         return None
 
 
@@ -215,23 +222,58 @@ def _u32_at(data: np.ndarray, starts: np.ndarray) -> np.ndarray:
     return _gather(data, starts, 4).view("<u4").ravel().astype(np.int64)
 
 
-class _Ros1Bag(IndexedBag):
-    """A ROS 1 bag whose chunks are all uncompressed, memory-mapped. The index `rosbags` read on opening
-    (per connection: receive time, chunk, offset) locates every message; the record headers of the
-    topics asked for are checked in bulk against it (op, connection, time) before anything is used.
-    As with any mapped file, a bag truncated by another program during the conversion would stop the
-    process with SIGBUS instead of an error message; bags are not written while they are converted."""
+class _MappedBag(IndexedBag):
+    """Messages as slices of memory-mapped files. As with any mapped file, a bag truncated by another
+    program during the conversion would stop the process with SIGBUS instead of an error message; bags
+    are not written while they are converted."""
 
-    def __init__(self, buffer: mmap.mmap, refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
-        self._mmap = buffer
-        self._data = np.frombuffer(buffer, np.uint8)
-        self._refs = refs  # topic -> (receive ns, data position, data length), in bag order
+    def __init__(self, buffers: list[mmap.mmap], refs: dict[str, tuple[np.ndarray, ...]]):
+        self._buffers = buffers
+        self._data = [np.frombuffer(buffer, np.uint8) for buffer in buffers]
+        self._refs = refs  # topic -> (receive ns, file index, data position, data length), in bag order
+
+    def receive_ns(self, topic: str) -> np.ndarray:
+        return self._refs[topic][0]
+
+    def message(self, topic: str, i: int) -> memoryview:
+        _, file, pos, length = self._refs[topic]
+        return memoryview(self._buffers[file[i]])[pos[i]:pos[i] + length[i]]
+
+    def head(self, topic: str, i: int) -> memoryview:
+        _, file, pos, length = self._refs[topic]
+        return memoryview(self._buffers[file[i]])[pos[i]:pos[i] + min(int(length[i]), HEAD_BYTES)]
+
+    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
+        receive, file, pos, length = self._refs[topic]
+        for start in range(0, len(receive), BLOCK):
+            block = slice(start, start + BLOCK)
+            files, lengths = file[block], length[block]
+            if (lengths == lengths[0]).all() and (files == files[0]).all():
+                yield receive[block], _gather(self._data[files[0]], pos[block], int(lengths[0]))
+            else:
+                yield receive[block], [self._buffers[f][p:p + n] for f, p, n in zip(files, pos[block], lengths,
+                                                                                     strict=True)]
+
+    def close(self) -> None:
+        del self._data
+        for buffer in self._buffers:
+            _close_quietly(buffer)
+
+
+def _map(file: Path) -> mmap.mmap:
+    with open(file, "rb") as stream:
+        return mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ)  # stays open after the file
+
+
+class _Ros1Bag(_MappedBag):
+    """A ROS 1 bag whose chunks are all uncompressed. The index `rosbags` read on opening (per
+    connection: receive time, chunk, offset) locates every message; the record headers of the topics
+    asked for are checked in bulk against it (op, connection, time) before anything is used."""
 
     @classmethod
     def open(cls, reader: AnyReader, topics: set[str]) -> _Ros1Bag | None:
         (bag,) = reader.readers
-        with open(bag.path, "rb") as file:
-            buffer = mmap.mmap(file.fileno(), 0, access=mmap.ACCESS_READ)  # stays open after the file
+        buffer = _map(bag.path)
         try:
             refs = _ros1_index(buffer, bag, reader.connections, topics)
         except BaseException:
@@ -240,32 +282,8 @@ class _Ros1Bag(IndexedBag):
         if refs is None:
             _close_quietly(buffer)
             return None
-        return cls(buffer, refs)
-
-    def receive_ns(self, topic: str) -> np.ndarray:
-        return self._refs[topic][0]
-
-    def message(self, topic: str, i: int) -> memoryview:
-        _, pos, length = self._refs[topic]
-        return memoryview(self._mmap)[pos[i]:pos[i] + length[i]]
-
-    def head(self, topic: str, i: int) -> memoryview:
-        _, pos, length = self._refs[topic]
-        return memoryview(self._mmap)[pos[i]:pos[i] + min(int(length[i]), HEAD_BYTES)]
-
-    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
-        receive, pos, length = self._refs[topic]
-        for start in range(0, len(receive), BLOCK):
-            block = slice(start, start + BLOCK)
-            lengths = length[block]
-            if (lengths == lengths[0]).all():
-                yield receive[block], _gather(self._data, pos[block], int(lengths[0]))
-            else:
-                yield receive[block], [self._mmap[p:p + n] for p, n in zip(pos[block], lengths, strict=True)]
-
-    def close(self) -> None:
-        del self._data
-        _close_quietly(self._mmap)
+        return cls([buffer], {topic: (receive, np.zeros_like(pos), pos, length)
+                              for topic, (receive, pos, length) in refs.items()})
 
 
 def _close_quietly(buffer: mmap.mmap) -> None:
@@ -373,10 +391,7 @@ class _SqliteBag(IndexedBag):
         self._closed = False
 
     @classmethod
-    def open(cls, path: Path, reader: AnyReader, topics: set[str]) -> _SqliteBag | None:
-        files = _sqlite_files(path)
-        if files is None:
-            return None
+    def open(cls, files: list[Path], topics: set[str]) -> _SqliteBag:
         connections = []
         try:
             for file in files:
@@ -463,12 +478,101 @@ def _connect(file: Path) -> sqlite3.Connection:
     return db
 
 
-def _sqlite_files(path: Path) -> list[Path] | None:
-    """The .db3 files of an uncompressed sqlite3 ROS 2 bag (a folder, or one .db3 given alone)."""
+def _ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
+    """("sqlite3" or "mcap", the storage files) of a ROS 2 bag (a folder, or one .db3 or .mcap file given
+    alone); None for other storages and for compressed bags (`ros2 bag record --compression-mode`)."""
     if path.is_file():
-        return [path] if path.suffix == ".db3" else None
+        kind = {".db3": "sqlite3", ".mcap": "mcap"}.get(path.suffix)
+        return None if kind is None else (kind, [path])
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml: the topics' QoS make the file long
     info = yaml.load((path / "metadata.yaml").read_text(), Loader=loader)["rosbag2_bagfile_information"]
-    if info.get("storage_identifier") != "sqlite3" or (info.get("compression_mode") or "none").lower() != "none":
+    kind = info.get("storage_identifier")
+    if kind not in ("sqlite3", "mcap") or (info.get("compression_mode") or "none").lower() != "none":
         return None
-    return [path / Path(name).name for name in info["relative_file_paths"]]
+    return kind, [path / Path(name).name for name in info["relative_file_paths"]]
+
+
+# MCAP (mcap.dev/spec). A chunk record is op 0x06, a uint64 length, message start and end times and
+# the uncompressed size (uint64), its CRC (uint32), the compression (uint32 length + string), the
+# records' length (uint64), then the records. A message record is op 0x05, a uint64 length, channel
+# id (uint16), sequence (uint32), log and publish times (uint64), then the data. The summary's chunk
+# indexes point at each chunk's message index records: op 0x07, a uint64 length, channel id (uint16),
+# a uint32 byte length, then (log time, offset into the chunk's records) uint64 pairs.
+_MCAP_MESSAGE, _MCAP_MESSAGE_INDEX = 0x05, 0x07
+_MCAP_CHUNK_FIXED = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 8  # a chunk record's fields besides the compression string
+_MCAP_MESSAGE_FIXED = 2 + 4 + 8 + 8  # a message record's fields before the data
+
+
+class _McapBag(_MappedBag):
+    """A ROS 2 bag in MCAP storage (rosbag2's default from Iron on) whose chunks holding the topics
+    asked for are uncompressed (rosbag2's default). The summary's chunk and message indexes locate
+    every message; the message records are checked in bulk against them (op, length, channel, log
+    time) before anything is used."""
+
+    @classmethod
+    def open(cls, files: list[Path], topics: set[str]) -> _McapBag | None:
+        buffers: list[mmap.mmap] = []
+        try:
+            parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
+            for index, file in enumerate(files):
+                buffers.append(_map(file))
+                found = _mcap_refs(file, buffers[-1], topics)
+                if found is None:
+                    for buffer in buffers:
+                        _close_quietly(buffer)
+                    return None
+                for topic, table in found.items():
+                    parts[topic].append(np.column_stack([table[:, 0], np.full(len(table), index), table[:, 1:]]))
+        except BaseException:
+            for buffer in buffers:
+                _close_quietly(buffer)
+            raise
+        refs = {}
+        for topic, found in parts.items():
+            table = np.concatenate(found) if found else np.zeros((0, 4), np.int64)
+            table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]  # time, file, position
+            refs[topic] = tuple(table.T)
+        return cls(buffers, refs)
+
+
+def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.ndarray] | None:
+    """Per topic an (N, 3) array of (log time ns, data position, data length) for one MCAP file; None
+    without a summary, with a compressed chunk holding a topic asked for, or when a record does not
+    match its index."""
+    with open(file, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    if summary is None or not summary.chunk_indexes:  # unindexed, or messages outside chunks
+        return None
+    channels = {cid: channel.topic for cid, channel in summary.channels.items() if channel.topic in topics}
+    data = np.frombuffer(buffer, np.uint8)
+    found: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
+    for chunk in summary.chunk_indexes:
+        wanted = [cid for cid in chunk.message_index_offsets if cid in channels]
+        if not wanted:
+            continue
+        if chunk.compression:
+            return None
+        records = chunk.chunk_start_offset + _MCAP_CHUNK_FIXED
+        records_end = records + chunk.uncompressed_size
+        if records_end != chunk.chunk_start_offset + chunk.chunk_length or records_end > len(buffer):
+            return None
+        for cid in wanted:
+            at = chunk.message_index_offsets[cid]
+            if buffer[at] != _MCAP_MESSAGE_INDEX or struct.unpack_from("<H", buffer, at + 9)[0] != cid:
+                return None
+            count = struct.unpack_from("<I", buffer, at + 11)[0] // 16
+            pairs = np.frombuffer(buffer, "<u8", 2 * count, at + 15).reshape(count, 2).astype(np.int64)
+            log_time, record = pairs[:, 0], records + pairs[:, 1]
+            if (record + 1 + 8 + _MCAP_MESSAGE_FIXED > records_end).any():
+                return None
+            length = _gather(data, record + 1, 8).view("<u8").ravel().astype(np.int64)
+            if not ((data[record] == _MCAP_MESSAGE).all() and (record + 9 + length <= records_end).all()
+                    and (length >= _MCAP_MESSAGE_FIXED).all()
+                    and (_gather(data, record + 9, 2).view("<u2").ravel() == cid).all()
+                    and (_gather(data, record + 15, 8).view("<u8").ravel().astype(np.int64) == log_time).all()):
+                return None
+            found[channels[cid]].append(np.column_stack([log_time, record + 9 + _MCAP_MESSAGE_FIXED,
+                                                         length - _MCAP_MESSAGE_FIXED]))
+    del data
+    return {topic: np.concatenate(tables) if tables else np.zeros((0, 3), np.int64)
+            for topic, tables in found.items()}

@@ -3,9 +3,9 @@ every image, all force and pose samples, the first camera info of each side. Top
 paired and the force checked against the video span from the scan, so a bad bag fails before
 anything is encoded.
 
-Where the storage allows random access (ROS 1 bags with uncompressed chunks, ROS 2 sqlite3 bags;
-`bag_index`), the scan reads only the first bytes of each image; elsewhere (bz2/lz4 chunks, MCAP
-storage) it streams the bag through `rosbags`' iterator."""
+Where the storage allows random access (ROS 1 bags and ROS 2 MCAP storage with uncompressed chunks,
+ROS 2 sqlite3 bags; `bag_index`), the scan reads only the first bytes of each image; elsewhere
+(compressed chunks or bags) it streams the bag through `rosbags`' iterator."""
 
 from __future__ import annotations
 
