@@ -5,6 +5,7 @@ value by value, through `vfdata.Recording`."""
 from __future__ import annotations
 
 import logging
+import shutil
 import sqlite3
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -13,8 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 from mcap.reader import make_reader
 from rawfixtures import calibration
+from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
@@ -663,6 +666,69 @@ def test_indexed_and_streamed_conversions_are_identical(tmp_path, ros2, storage)
         assert bag_index.open_indexed_bag(reader, slow, set(reader.topics)) is None
     contents = [raw_messages(convert_bag(bag, tmp_path / f"{bag.stem}.mcap", options=PNG)) for bag in (fast, slow)]
     check_recording(tmp_path / "fast.mcap", spec)
+    assert contents[0] == contents[1]
+
+
+def split_bag(src: Path, dst: Path, storage: StoragePlugin) -> None:
+    """`src` rewritten as a ROS 2 bag of two storage files, as `ros2 bag record --max-bag-size` makes:
+    the first half of the messages in one file, the rest in the other, one metadata.yaml for both."""
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    with AnyReader([src]) as reader:
+        messages = [(c.topic, c.msgtype, t, bytes(raw)) for c, t, raw in reader.messages()]
+    dst.mkdir()
+    infos = []
+    for k, part_messages in enumerate((messages[:len(messages) // 2], messages[len(messages) // 2:])):
+        part = dst.parent / f"{dst.name}_part{k}"
+        with Writer2(part, version=9, storage_plugin=storage) as writer:
+            connections = {}
+            for topic, msgtype, t, raw in part_messages:
+                if topic not in connections:
+                    connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
+                writer.write(connections[topic], t, raw)
+        info = yaml.safe_load((part / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+        (name,) = info["relative_file_paths"]
+        renamed = f"{dst.name}_{k}{Path(name).suffix}"
+        shutil.move(part / name, dst / renamed)
+        shutil.rmtree(part)
+        for file in info["files"]:
+            file["path"] = renamed
+        infos.append(info)
+    merged = infos[0]
+    merged["relative_file_paths"] = [info["files"][0]["path"] for info in infos]
+    merged["files"] = [file for info in infos for file in info["files"]]
+    merged["message_count"] = sum(info["message_count"] for info in infos)
+    topics: dict[str, dict] = {}
+    for info in infos:
+        for entry in info["topics_with_message_count"]:
+            name = entry["topic_metadata"]["name"]
+            if name in topics:
+                topics[name]["message_count"] += entry["message_count"]
+            else:
+                topics[name] = entry
+    merged["topics_with_message_count"] = list(topics.values())
+    end = max(info["starting_time"]["nanoseconds_since_epoch"] + info["duration"]["nanoseconds"] for info in infos)
+    merged["duration"]["nanoseconds"] = end - merged["starting_time"]["nanoseconds_since_epoch"]
+    (dst / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": merged}))
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])
+def test_split_ros2_bag_converts_like_the_whole(tmp_path, storage):
+    """A bag recorded in two storage files is read file by file through the random-access path and
+    gives the recording the single-file bag gives."""
+    whole, split = tmp_path / "whole", tmp_path / "split"
+    spec = write_bag(whole, BagSpec(ros2=True, storage=storage))
+    split_bag(whole, split, storage)
+    assert len(list(split.glob("split_*"))) == 2
+    with bag_scan.open_bag(split) as reader:
+        indexed = bag_index.open_indexed_bag(reader, split, set(reader.topics))
+        assert indexed is not None
+        try:
+            for topic in reader.topics:
+                assert bytes(indexed.message(topic, len(iterated(reader, topic)) - 1)) == iterated(reader, topic)[-1][1]
+        finally:
+            indexed.close()
+    contents = [raw_messages(convert_bag(bag, tmp_path / f"{bag.name}.mcap", options=PNG)) for bag in (whole, split)]
+    check_recording(tmp_path / "split.mcap", spec)
     assert contents[0] == contents[1]
 
 
