@@ -418,7 +418,7 @@ class _SqliteBag(IndexedBag):
             for topic, found in parts.items():
                 table = np.concatenate(found) if found else np.zeros((0, 3), np.int64)
                 table = table[np.argsort(table[:, 0], kind="stable")]
-                refs[topic] = (table[:, 0], table[:, 1], table[:, 2])
+                refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
         except BaseException:
             for db in connections:
                 db.close()
@@ -531,7 +531,7 @@ class _McapBag(_MappedBag):
         for topic, found in parts.items():
             table = np.concatenate(found) if found else np.zeros((0, 4), np.int64)
             table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]  # time, file, position
-            refs[topic] = tuple(table.T)
+            refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
         return cls(buffers, refs)
 
 
