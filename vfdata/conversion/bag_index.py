@@ -538,41 +538,62 @@ class _McapBag(_MappedBag):
 def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.ndarray] | None:
     """Per topic an (N, 3) array of (log time ns, data position, data length) for one MCAP file; None
     without a summary, with a compressed chunk holding a topic asked for, or when a record does not
-    match its index."""
+    match its index. Only the loop over the summary's chunk indexes is Python; the index and message
+    records are read and checked with numpy (a chunk a message: an hour of stereo is 100k chunks)."""
     with open(file, "rb") as stream:
         summary = make_reader(stream).get_summary()
     if summary is None or not summary.chunk_indexes:  # unindexed, or messages outside chunks
         return None
     channels = {cid: channel.topic for cid, channel in summary.channels.items() if channel.topic in topics}
-    data = np.frombuffer(buffer, np.uint8)
-    found: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
+    indexes = []  # (message index record position, channel id, chunk records start, chunk records end)
     for chunk in summary.chunk_indexes:
-        wanted = [cid for cid in chunk.message_index_offsets if cid in channels]
+        wanted = [(cid, at) for cid, at in chunk.message_index_offsets.items() if cid in channels]
         if not wanted:
             continue
         if chunk.compression:
             return None
         records = chunk.chunk_start_offset + _MCAP_CHUNK_FIXED
-        records_end = records + chunk.uncompressed_size
-        if records_end != chunk.chunk_start_offset + chunk.chunk_length or records_end > len(buffer):
+        records_end = chunk.chunk_start_offset + chunk.chunk_length
+        if records_end != records + chunk.uncompressed_size:
             return None
-        for cid in wanted:
-            at = chunk.message_index_offsets[cid]
-            if buffer[at] != _MCAP_MESSAGE_INDEX or struct.unpack_from("<H", buffer, at + 9)[0] != cid:
-                return None
-            count = struct.unpack_from("<I", buffer, at + 11)[0] // 16
-            pairs = np.frombuffer(buffer, "<u8", 2 * count, at + 15).reshape(count, 2).astype(np.int64)
-            log_time, record = pairs[:, 0], records + pairs[:, 1]
-            if (record + 1 + 8 + _MCAP_MESSAGE_FIXED > records_end).any():
-                return None
-            length = _gather(data, record + 1, 8).view("<u8").ravel().astype(np.int64)
-            if not ((data[record] == _MCAP_MESSAGE).all() and (record + 9 + length <= records_end).all()
-                    and (length >= _MCAP_MESSAGE_FIXED).all()
-                    and (_gather(data, record + 9, 2).view("<u2").ravel() == cid).all()
-                    and (_gather(data, record + 15, 8).view("<u8").ravel().astype(np.int64) == log_time).all()):
-                return None
-            found[channels[cid]].append(np.column_stack([log_time, record + 9 + _MCAP_MESSAGE_FIXED,
-                                                         length - _MCAP_MESSAGE_FIXED]))
+        indexes.extend((at, cid, records, records_end) for cid, at in wanted)
+    empty = {topic: np.zeros((0, 3), np.int64) for topic in topics}
+    if not indexes:
+        return empty
+    index_at, index_channel, records, records_end = np.array(indexes, np.int64).T
+    data = np.frombuffer(buffer, np.uint8)
+    if records_end.max() > len(data) or (index_at + 15 > len(data)).any():
+        return None
+    if ((data[index_at] != _MCAP_MESSAGE_INDEX).any()
+            or (_gather(data, index_at + 9, 2).view("<u2").ravel() != index_channel).any()):
+        return None
+    counts = _gather(data, index_at + 11, 4).view("<u4").ravel().astype(np.int64) // 16
+    # Entry k of index record r: its (log time, offset) pair is 16 bytes at index_at[r] + 15 + 16 k.
+    owner = np.repeat(np.arange(len(index_at)), counts)
+    entry = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+    pair_at = index_at[owner] + 15 + 16 * entry
+    if len(pair_at) and pair_at.max() + 16 > len(data):
+        return None
+    tables = []
+    for start in range(0, len(owner), INDEX_BLOCK):  # bounded temporaries for a long 1 kHz series
+        block = slice(start, start + INDEX_BLOCK)
+        own, at = owner[block], pair_at[block]
+        log_time = _gather(data, at, 8).view("<u8").ravel().astype(np.int64)
+        record = records[own] + _gather(data, at + 8, 8).view("<u8").ravel().astype(np.int64)
+        end, channel = records_end[own], index_channel[own]
+        if (record + 9 + _MCAP_MESSAGE_FIXED > end).any():
+            return None
+        length = _gather(data, record + 1, 8).view("<u8").ravel().astype(np.int64)
+        if not ((data[record] == _MCAP_MESSAGE).all() and (record + 9 + length <= end).all()
+                and (length >= _MCAP_MESSAGE_FIXED).all()
+                and (_gather(data, record + 9, 2).view("<u2").ravel() == channel).all()
+                and (_gather(data, record + 15, 8).view("<u8").ravel().astype(np.int64) == log_time).all()):
+            return None
+        tables.append(np.column_stack([log_time, record + 9 + _MCAP_MESSAGE_FIXED, length - _MCAP_MESSAGE_FIXED,
+                                       channel]))
     del data
-    return {topic: np.concatenate(tables) if tables else np.zeros((0, 3), np.int64)
-            for topic, tables in found.items()}
+    table = np.concatenate(tables)
+    for topic in topics:
+        mine = np.isin(table[:, 3], [cid for cid, name in channels.items() if name == topic])
+        empty[topic] = table[mine, :3]
+    return empty
