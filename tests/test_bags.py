@@ -447,6 +447,15 @@ def test_inspect_bag(tmp_path, capsys):
     assert "used as" not in lines["/PSM1/body/measured_cf"] and lines["/PSM1/body/measured_cf"].split()[-1] != "force"
     assert "ECM pose (dVRK default)" in lines["/ECM/measured_cp"]
     assert "stereo pairs: 8 within 16.7 ms" in text and "ready to convert" in text
+    assert "reading: random access: ROS 1 chunks, memory-mapped" in text
+    # how each storage is read
+    for name, spec, reading in (
+            ("lz4.bag", BagSpec(lz4=True, frames=2), "streaming through rosbags"),
+            ("sq", BagSpec(ros2=True, frames=2), "random access: sqlite3 rows"),
+            ("mc", BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=2), "random access: MCAP chunks"),
+            ("zs", BagSpec(ros2=True, storage=StoragePlugin.MCAP, zstd=True, frames=2), "streaming through rosbags")):
+        write_bag(tmp_path / name, spec)
+        assert f"reading: {reading}" in inspect_bag_text(tmp_path / name), name
     # a bag that cannot be converted is still listed, with the reason
     write_bag(tmp_path / "n.bag", BagSpec(with_images=False, frames=2))
     assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 0

@@ -82,6 +82,8 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
                                               use_camera_info=calibration is None)
             scan = bag_scan.scan_bag(reader, path, choice, all_topics=True, progress=progress)
             counts, receive = scan.counts, scan.receive_ns
+            reading = scan.indexed.reading if scan.indexed is not None else STREAMING
+            bag_scan.close_scan(scan)  # the rest needs only what the scan found
         except InputError as exc:  # still list the topics, then say why convert would stop
             problem = exc.problem
             counts = {name: info.msgcount for name, info in reader.topics.items()}
@@ -99,8 +101,13 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
     if scan is None:
         lines.append(f"  cannot convert: {problem}")
         return "\n".join(lines)
+    lines.append(f"  reading: {reading}")
     lines.extend(_conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns))
     return "\n".join(lines)
+
+
+STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "
+             "included; slower than random access")
 
 
 def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:

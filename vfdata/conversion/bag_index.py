@@ -148,6 +148,8 @@ class IndexedBag:
     """The messages of the topics asked for, in bag order (by receive time, as `rosbags` yields them),
     each reachable by its position in its topic."""
 
+    reading = ""  # how the messages are reached, for `vfdata inspect-bag`
+
     def receive_ns(self, topic: str) -> np.ndarray:
         """Bag receive times (ns) of the messages of `topic`, in bag order."""
         raise NotImplementedError
@@ -270,6 +272,8 @@ class _Ros1Bag(_MappedBag):
     connection: receive time, chunk, offset) locates every message; the record headers of the topics
     asked for are checked in bulk against it (op, connection, time) before anything is used."""
 
+    reading = "random access: ROS 1 chunks, memory-mapped"
+
     @classmethod
     def open(cls, reader: AnyReader, topics: set[str]) -> _Ros1Bag | None:
         (bag,) = reader.readers
@@ -379,6 +383,8 @@ class _SqliteBag(IndexedBag):
 
     Each thread reads through connections of its own: sqlite serialises the calls on one connection,
     so two encoding threads copying images out of one connection took turns."""
+
+    reading = "random access: sqlite3 rows, each image copied out of its blob"
 
     def __init__(self, files: list[Path], connections: list[sqlite3.Connection],
                  refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
@@ -508,6 +514,8 @@ class _McapBag(_MappedBag):
     asked for are uncompressed (rosbag2's default). The summary's chunk and message indexes locate
     every message; the message records are checked in bulk against them (op, length, channel, log
     time) before anything is used."""
+
+    reading = "random access: MCAP chunks, memory-mapped"
 
     @classmethod
     def open(cls, files: list[Path], topics: set[str]) -> _McapBag | None:
