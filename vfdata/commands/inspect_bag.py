@@ -13,6 +13,11 @@ from vfdata.conversion import bag_scan, bag_topics, bags
 from vfdata.errors import InputError
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
 
+# How a bag without random access (`bag_index`) is read.
+STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "
+             "included; slower than random access")
+
+
 
 def add_bag_arguments(p: argparse.ArgumentParser) -> None:
     """The topic remapping and camera options of a bag conversion."""
@@ -104,10 +109,6 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
     lines.append(f"  reading: {reading}")
     lines.extend(_conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns))
     return "\n".join(lines)
-
-
-STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "
-             "included; slower than random access")
 
 
 def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
