@@ -18,7 +18,6 @@ STREAMING = ("streaming through rosbags (compressed chunks or bag): every messag
              "included; slower than random access")
 
 
-
 def add_bag_arguments(p: argparse.ArgumentParser) -> None:
     """The topic remapping and camera options of a bag conversion."""
     g = p.add_argument_group("ROS bags (defaults: dVRK topic names, auto-detected by type when absent)")
