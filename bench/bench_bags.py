@@ -8,7 +8,7 @@ Runs alternate (bare, conversion, bare, ...) so both see the same load; prints e
 median rates and CPU times, and their ratios (target >= 0.7). On a machine shared with other jobs the
 CPU-time ratio is the steadier figure: with as many threads as cores, the wall ratio tends to it.
 
-    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2 [--storage mcap]]
+    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2 [--storage mcap|mcap-zstd]]
                                [--force-hz 1000] [--repeat 3]
 """
 
@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
@@ -66,8 +66,10 @@ def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: boo
         fields = {"stamp": time_msg, "frame_id": frame} if ros2 else {"seq": 0, "stamp": time_msg, "frame_id": frame}
         return T["std_msgs/msg/Header"](**fields)
 
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
     writer = Writer2(path, version=9, storage_plugin=plugin) if ros2 else Writer1(path)
+    if storage == "mcap-zstd":  # read through rosbags' iterator, not in place
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     with writer:
         image_type, wrench_type = "sensor_msgs/msg/Image", "geometry_msgs/msg/WrenchStamped"
         left_c = writer.add_connection("/jhu_daVinci/left/image_raw", image_type, typestore=ts)
@@ -118,8 +120,9 @@ def main() -> None:
     parser.add_argument("--convert-workers", type=int, default=None,
                         help="encoding threads of the conversion only (default: --workers)")
     parser.add_argument("--ros2", action="store_true", help="write a ROS 2 bag instead of ROS 1")
-    parser.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3",
-                        help="storage of the ROS 2 bag (default sqlite3; mcap is the default of ROS 2 Iron onwards)")
+    parser.add_argument("--storage", choices=("sqlite3", "mcap", "mcap-zstd"), default="sqlite3",
+                        help="storage of the ROS 2 bag (default sqlite3; mcap is the default of ROS 2 Iron onwards; "
+                             "mcap-zstd: zstd chunks)")
     parser.add_argument("--force-hz", type=float, default=1000.0, help="WrenchStamped rate (default 1000 Hz)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, alternating; medians are reported "
                                                               "(default 3)")
