@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
+from mcap.writer import CompressionType, IndexType
+from mcap.writer import Writer as McapFileWriter
 from rawfixtures import calibration
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
@@ -783,6 +785,30 @@ def test_mcap_record_that_disagrees_with_its_index_falls_back_to_rosbags(tmp_pat
     with bag_scan.open_bag(bag) as reader:
         assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
         assert bag_index.open_indexed_bag(reader, bag, {spec.left}) is not None  # only the topics asked for
+
+
+def test_mcap_without_message_indexes_falls_back(tmp_path):
+    """A writer may leave out the message indexes (the chunk indexes then point at none): the
+    statistics still count the messages, so the missing ones are noticed and the bag is streamed."""
+    bag = tmp_path / "m"
+    write_bag(bag, BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=3))
+    (file,) = bag.glob("*.mcap")
+    with open(file, "rb") as stream:
+        messages = list(make_reader(stream).iter_messages())
+    with open(file, "wb") as stream:
+        writer = McapFileWriter(stream, compression=CompressionType.NONE, index_types=IndexType.CHUNK)
+        writer.start(profile="ros2")
+        schemas, channels = {}, {}
+        for schema, channel, message in messages:
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas[schema.id], channel.metadata)
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        writer.finish()
+    with bag_scan.open_bag(bag) as reader:
+        assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
 
 
 def test_payload_helpers_match_message_encoding():

@@ -545,12 +545,15 @@ class _McapBag(_MappedBag):
 
 def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.ndarray] | None:
     """Per topic an (N, 3) array of (log time ns, data position, data length) for one MCAP file; None
-    without a summary, with a compressed chunk holding a topic asked for, or when a record does not
-    match its index. Only the loop over the summary's chunk indexes is Python; the index and message
-    records are read and checked with numpy (a chunk a message: an hour of stereo is 100k chunks)."""
+    without a summary and its statistics, with a compressed chunk holding a topic asked for, when a
+    record does not match its index, or when the indexes miss messages the statistics count. Only the
+    loop over the summary's chunk indexes is Python; the index and message records are read and
+    checked with numpy (a chunk a message: an hour of stereo is 100k chunks)."""
     with open(file, "rb") as stream:
         summary = make_reader(stream).get_summary()
-    if summary is None or not summary.chunk_indexes:  # unindexed, or messages outside chunks
+    # Without chunk indexes (unchunked) or statistics (nothing to check the message indexes against:
+    # a writer may leave them out) only a full read finds every message.
+    if summary is None or not summary.chunk_indexes or summary.statistics is None:
         return None
     channels = {cid: channel.topic for cid, channel in summary.channels.items() if channel.topic in topics}
     indexes = []  # (message index record position, channel id, chunk records start, chunk records end)
@@ -565,9 +568,10 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
         if records_end != records + chunk.uncompressed_size:
             return None
         indexes.extend((at, cid, records, records_end) for cid, at in wanted)
+    expected = summary.statistics.channel_message_counts
     empty = {topic: np.zeros((0, 3), np.int64) for topic in topics}
     if not indexes:
-        return empty
+        return empty if not any(expected.get(cid, 0) for cid in channels) else None
     index_at, index_channel, records, records_end = np.array(indexes, np.int64).T
     data = np.frombuffer(buffer, np.uint8)
     if records_end.max() > len(data) or (index_at + 15 > len(data)).any():
@@ -601,6 +605,10 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
                                        channel]))
     del data
     table = np.concatenate(tables)
+    found, count = np.unique(table[:, 3], return_counts=True)
+    if dict(zip(found.tolist(), count.tolist(), strict=True)) != {cid: n for cid in channels
+                                                                  if (n := expected.get(cid, 0))}:
+        return None
     for topic in topics:
         mine = np.isin(table[:, 3], [cid for cid, name in channels.items() if name == topic])
         empty[topic] = table[mine, :3]
