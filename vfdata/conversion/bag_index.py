@@ -569,9 +569,9 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
             return None
         indexes.extend((at, cid, records, records_end) for cid, at in wanted)
     expected = summary.statistics.channel_message_counts
-    empty = {topic: np.zeros((0, 3), np.int64) for topic in topics}
+    refs = {topic: np.zeros((0, 3), np.int64) for topic in topics}
     if not indexes:
-        return empty if not any(expected.get(cid, 0) for cid in channels) else None
+        return refs if not any(expected.get(cid, 0) for cid in channels) else None
     index_at, index_channel, records, records_end = np.array(indexes, np.int64).T
     data = np.frombuffer(buffer, np.uint8)
     if records_end.max() > len(data) or (index_at + 15 > len(data)).any():
@@ -611,5 +611,5 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
         return None
     for topic in topics:
         mine = np.isin(table[:, 3], [cid for cid, name in channels.items() if name == topic])
-        empty[topic] = table[mine, :3]
-    return empty
+        refs[topic] = table[mine, :3]
+    return refs
