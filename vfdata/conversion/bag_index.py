@@ -258,8 +258,7 @@ class _MappedBag(IndexedBag):
 
     def close(self) -> None:
         del self._data
-        for buffer in self._buffers:
-            _close_quietly(buffer)
+        _close_all(self._buffers)
 
 
 def _map(file: Path) -> mmap.mmap:
@@ -295,6 +294,23 @@ def _close_quietly(buffer: mmap.mmap) -> None:
         buffer.close()
     except BufferError:
         pass  # a message still refers to the mapping; it is unmapped when the last one is gone
+
+
+def _close_all(buffers: list[mmap.mmap]) -> None:
+    for buffer in buffers:
+        _close_quietly(buffer)
+
+
+def _in_bag_order(parts: dict[str, list[np.ndarray]], columns: int) -> dict[str, tuple[np.ndarray, ...]]:
+    """Per topic, its per-file tables of (receive ns, file index, position, ...) joined and sorted by
+    receive time, then file, then position (rosbags' merge order), as contiguous columns (a strided
+    column would be copied by every `searchsorted`)."""
+    refs = {}
+    for topic, found in parts.items():
+        table = np.concatenate(found) if found else np.zeros((0, columns), np.int64)
+        table = table[np.lexsort(table.T[::-1])]  # the last key sorts first
+        refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
+    return refs
 
 
 def _field(buffer: mmap.mmap, fields: dict[bytes, tuple[int, int]], name: bytes) -> bytes | None:
@@ -420,11 +436,7 @@ class _SqliteBag(IndexedBag):
                 for topic_id, name in ids.items():
                     mine = table[table[:, 2] == topic_id]
                     parts[name].append(np.column_stack([mine[:, 0], np.full(len(mine), index), mine[:, 1]]))
-            refs = {}
-            for topic, found in parts.items():
-                table = np.concatenate(found) if found else np.zeros((0, 3), np.int64)
-                table = table[np.argsort(table[:, 0], kind="stable")]
-                refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
+            refs = _in_bag_order(parts, 3)
         except BaseException:
             for db in connections:
                 db.close()
@@ -520,27 +532,20 @@ class _McapBag(_MappedBag):
     @classmethod
     def open(cls, files: list[Path], topics: set[str]) -> _McapBag | None:
         buffers: list[mmap.mmap] = []
+        parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
         try:
-            parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
             for index, file in enumerate(files):
                 buffers.append(_map(file))
                 found = _mcap_refs(file, buffers[-1], topics)
                 if found is None:
-                    for buffer in buffers:
-                        _close_quietly(buffer)
+                    _close_all(buffers)
                     return None
                 for topic, table in found.items():
                     parts[topic].append(np.column_stack([table[:, 0], np.full(len(table), index), table[:, 1:]]))
         except BaseException:
-            for buffer in buffers:
-                _close_quietly(buffer)
+            _close_all(buffers)
             raise
-        refs = {}
-        for topic, found in parts.items():
-            table = np.concatenate(found) if found else np.zeros((0, 4), np.int64)
-            table = table[np.lexsort((table[:, 2], table[:, 1], table[:, 0]))]  # time, file, position
-            refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
-        return cls(buffers, refs)
+        return cls(buffers, _in_bag_order(parts, 4))
 
 
 def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.ndarray] | None:
