@@ -1,15 +1,17 @@
 """Bag conversion rate against bare JPEG encoding of the same frames.
 
-Writes a ROS 1 (or ROS 2) bag of raw bgr8 640x512 stereo frames at 30 Hz with a WrenchStamped stream
-(1 kHz by default) and dVRK topic names, then measures, with the same number of threads:
+Writes bags of raw bgr8 640x512 stereo frames at 30 Hz with a WrenchStamped stream (1 kHz by
+default) and dVRK topic names, one per kind asked for (ROS 1; ROS 2 in sqlite3, MCAP or zstd MCAP
+storage), then measures, with the same number of threads:
   - bare: cv2.imencode (JPEG, quality 95) of every left and right frame, already in memory;
   - convert: `convert_bag` end to end (open, scan, pairing, reading, decoding, encoding, MCAP).
-Runs alternate (bare, conversion, bare, ...) so both see the same load; prints every run, the
-median rates and CPU times, and their ratios (target >= 0.7). On a machine shared with other jobs the
-CPU-time ratio is the steadier figure: with as many threads as cores, the wall ratio tends to it.
+Runs alternate (bare, each bag, bare, each bag, ...) so all see the same load; prints every run,
+the median rates and CPU times, and each bag's ratios to bare (target >= 0.7). Compare bags within
+one invocation: on a machine shared with other jobs, figures move by 0.1 between invocations. The
+CPU-time ratio is the steadier figure; with as many threads as cores, the wall ratio tends to it.
 
-    python bench/bench_bags.py [--frames 200] [--workers 2] [--convert-workers N] [--ros2 [--storage mcap|mcap-zstd]]
-                               [--force-hz 1000] [--repeat 3]
+    python bench/bench_bags.py [--bags ros1 sqlite3 mcap mcap-zstd] [--frames 200] [--workers 2]
+                               [--convert-workers N] [--force-hz 1000] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -55,8 +57,11 @@ def tissue_like_frames(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarr
     return frames
 
 
-def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: bool, force_hz: float,
-              storage: str = "sqlite3") -> None:
+KINDS = ("ros1", "sqlite3", "mcap", "mcap-zstd")  # ROS 1; ROS 2 storages
+
+
+def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], kind: str, force_hz: float) -> None:
+    ros2 = kind != "ros1"
     ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
     T = ts.types
     serialize = ts.serialize_cdr if ros2 else ts.serialize_ros1
@@ -66,9 +71,9 @@ def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], ros2: boo
         fields = {"stamp": time_msg, "frame_id": frame} if ros2 else {"seq": 0, "stamp": time_msg, "frame_id": frame}
         return T["std_msgs/msg/Header"](**fields)
 
-    plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+    plugin = StoragePlugin.SQLITE3 if kind == "sqlite3" else StoragePlugin.MCAP
     writer = Writer2(path, version=9, storage_plugin=plugin) if ros2 else Writer1(path)
-    if storage == "mcap-zstd":  # read through rosbags' iterator, not in place
+    if kind == "mcap-zstd":  # read through rosbags' iterator, not in place
         writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
     with writer:
         image_type, wrench_type = "sensor_msgs/msg/Image", "geometry_msgs/msg/WrenchStamped"
@@ -113,58 +118,69 @@ def bare_jpeg_seconds(frames: list[tuple[np.ndarray, np.ndarray]], workers: int)
     return elapsed, cpu
 
 
+def timed_conversion(bag: Path, out: Path, options: ConvertOptions) -> tuple[float, float, float]:
+    """(wall, CPU, main-thread CPU) seconds of one `convert_bag`."""
+    start, cpu, main_cpu = time.perf_counter(), time.process_time(), time.thread_time()
+    convert_bag(bag, out, options=options)
+    elapsed = (time.perf_counter() - start, time.process_time() - cpu, time.thread_time() - main_cpu)
+    # Outside the timing: a user converts to a new file; replacing the last run's 40 MB output inside
+    # convert_bag cost up to 70 ms (0.35 ms a frame) of unlinking that no user pays.
+    out.unlink()
+    return elapsed
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bags", nargs="+", choices=KINDS, default=None,
+                        help="bags to convert, alternating in one sitting: ros1, or a ROS 2 storage (sqlite3; mcap, "
+                             "the default of ROS 2 Iron onwards; mcap-zstd: zstd chunks) (default ros1)")
+    parser.add_argument("--ros2", action="store_true", help="older spelling of --bags STORAGE")
+    parser.add_argument("--storage", choices=KINDS[1:], default="sqlite3", help="with --ros2 (default sqlite3)")
     parser.add_argument("--frames", type=int, default=200, help="stereo frames in the bag (default 200)")
     parser.add_argument("--workers", type=int, default=2, help="encoding threads for both (default 2)")
     parser.add_argument("--convert-workers", type=int, default=None,
                         help="encoding threads of the conversion only (default: --workers)")
-    parser.add_argument("--ros2", action="store_true", help="write a ROS 2 bag instead of ROS 1")
-    parser.add_argument("--storage", choices=("sqlite3", "mcap", "mcap-zstd"), default="sqlite3",
-                        help="storage of the ROS 2 bag (default sqlite3; mcap is the default of ROS 2 Iron onwards; "
-                             "mcap-zstd: zstd chunks)")
     parser.add_argument("--force-hz", type=float, default=1000.0, help="WrenchStamped rate (default 1000 Hz)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, alternating; medians are reported "
                                                               "(default 3)")
     args = parser.parse_args()
+    kinds = list(dict.fromkeys(args.bags or [args.storage if args.ros2 else "ros1"]))
 
     cv2.setNumThreads(1)  # the thread pool is the only parallelism in both measurements
     frames = tissue_like_frames(args.frames)
     load_before = os.getloadavg()[0]
+    options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, progress=False,
+                             workers=args.convert_workers or args.workers)
     with tempfile.TemporaryDirectory() as tmp:
-        bag = Path(tmp) / ("bench" if args.ros2 else "bench.bag")
-        write_bag(bag, frames, args.ros2, args.force_hz, args.storage)
-        size = sum(p.stat().st_size for p in bag.rglob("*")) if bag.is_dir() else bag.stat().st_size
-        options = ConvertOptions(image_format="jpeg", jpeg_quality=QUALITY, progress=False,
-                                 workers=args.convert_workers or args.workers)
         out = Path(tmp) / "out.mcap"
-        convert_bag(bag, out, options=options)  # warm-up: imports, page cache
-        out.unlink()
-        bare, convert = [], []
+        bags, sizes = {}, {}
+        for kind in kinds:
+            bags[kind] = Path(tmp) / ("bench.bag" if kind == "ros1" else kind)
+            write_bag(bags[kind], frames, kind, args.force_hz)
+            sizes[kind] = sum(p.stat().st_size for p in bags[kind].rglob("*")) if kind != "ros1" \
+                else bags[kind].stat().st_size
+            timed_conversion(bags[kind], out, options)  # warm-up: imports, page cache
+        bare: list[tuple[float, float]] = []
+        runs: dict[str, list[tuple[float, float, float]]] = {kind: [] for kind in kinds}
         for _ in range(args.repeat):
             bare.append(bare_jpeg_seconds(frames, args.workers))
-            start, cpu, main_cpu = time.perf_counter(), time.process_time(), time.thread_time()
-            convert_bag(bag, out, options=options)
-            convert.append((time.perf_counter() - start, time.process_time() - cpu, time.thread_time() - main_cpu))
-            # Outside the timing: a user converts to a new file; replacing the last run's 40 MB output
-            # inside convert_bag cost up to 70 ms (0.35 ms a frame) of unlinking that no user pays.
-            out.unlink()
+            for kind in kinds:
+                runs[kind].append(timed_conversion(bags[kind], out, options))
     load = (load_before + os.getloadavg()[0]) / 2
     n = args.frames
+    print(f"{n} stereo frames bgr8 {WIDTH}x{HEIGHT}, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; "
+          f"{args.workers} threads (conversion: {options.workers}); {os.cpu_count()} CPUs, load average {load:.1f}")
+    for i, (bw, bc) in enumerate(bare):
+        line = "; ".join(f"{kind} {runs[kind][i][0]:.2f} s (ratio {bw / runs[kind][i][0]:.2f})" for kind in kinds)
+        print(f"  run {i}: bare {bw:.2f} s wall, {bc:.2f} s CPU | {line}")
     bare_wall, bare_cpu = (statistics.median(b[i] for b in bare) for i in range(2))
-    conv_wall, conv_cpu, main_cpu = (statistics.median(c[i] for c in convert) for i in range(3))
-    print(f"bag: {f'ROS 2 {args.storage}' if args.ros2 else 'ROS 1'}, {n} stereo frames bgr8 {WIDTH}x{HEIGHT}, "
-          f"{size / 1e6:.0f} MB, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; {args.workers} threads "
-          f"(conversion: {options.workers}); "
-          f"{os.cpu_count()} CPUs, load average {load:.1f}")
-    for i, ((bw, bc), (cw, cc, mc)) in enumerate(zip(bare, convert, strict=True)):
-        print(f"  run {i}: bare {bw:.2f} s wall, {bc:.2f} s CPU | conversion {cw:.2f} s wall, {cc:.2f} s CPU "
-              f"(main thread {mc:.2f} s) | wall ratio {bw / cw:.2f}, CPU ratio {bc / cc:.2f}")
     print(f"bare JPEG encoding: {n / bare_wall:6.1f} stereo frames/s; CPU {bare_cpu * 1e3 / n:.2f} ms a frame")
-    print(f"bag conversion:     {n / conv_wall:6.1f} stereo frames/s; CPU {conv_cpu * 1e3 / n:.2f} ms a frame, of "
-          f"which main thread {main_cpu * 1e3 / n:.2f} ms, encoding threads {(conv_cpu - main_cpu) * 1e3 / n:.2f} ms")
-    print(f"TARGET conversion / bare JPEG >= 0.7 (median of {args.repeat}): wall ratio {bare_wall / conv_wall:.2f}, "
-          f"CPU-time ratio {bare_cpu / conv_cpu:.2f}")
+    print(f"TARGET conversion / bare JPEG >= 0.7, medians of {args.repeat}:")
+    for kind in kinds:
+        wall, cpu, main_cpu = (statistics.median(r[i] for r in runs[kind]) for i in range(3))
+        print(f"  {kind:9s} ({sizes[kind] / 1e6:4.0f} MB): {n / wall:6.1f} stereo frames/s, wall ratio "
+              f"{bare_wall / wall:.2f}, CPU-time ratio {bare_cpu / cpu:.2f}; CPU {cpu * 1e3 / n:.2f} ms a frame, "
+              f"of which main thread {main_cpu * 1e3 / n:.2f} ms")
 
 
 if __name__ == "__main__":
