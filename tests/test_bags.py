@@ -27,7 +27,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from vfdata.cli import main
 from vfdata.commands.inspect_bag import inspect_bag_text
-from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, ros_images
+from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, image_messages, ros_images
 from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag, stamped_payload_table
 from vfdata.conversion.raw_folder import ConvertOptions
@@ -613,26 +613,27 @@ def test_image_heads_and_messages_match_deserialisation(tmp_path, ros2):
         for topic, msgtype in (("/cam/image", bag_topics.IMAGE), ("/cam/compressed", bag_topics.COMPRESSED_IMAGE)):
             for _, raw in iterated(reader, topic):
                 msg = reader.deserialize(raw, msgtype)
-                head = bag_index.image_head(raw[:bag_index.HEAD_BYTES], msgtype, ros2)
+                head = image_messages.image_head(raw[:bag_index.HEAD_BYTES], msgtype, ros2)
                 assert head == bag_scan._head_of(msg)
                 assert head.stamp_ns == bag_scan.header_stamp_ns(msg) and head.stamp_ns >= T0_NS
                 # cut before the last field it needs: no head, the caller deserialises the message
-                assert bag_index.image_head(raw[:head_length(raw, msgtype, ros2) - 1], msgtype, ros2) is None
+                assert image_messages.image_head(raw[:head_length(raw, msgtype, ros2) - 1], msgtype, ros2) is None
                 # the whole message, its data a view into the serialised bytes
-                whole = bag_index.image_message(raw, msgtype, ros2)
+                whole = image_messages.image_message(raw, msgtype, ros2)
                 assert whole.head == head and bytes(whole.data) == msg.data.tobytes()
                 if msgtype == bag_topics.IMAGE:
                     assert (whole.is_bigendian, whole.step) == (msg.is_bigendian, msg.step) == (0, 18)
                 from_rosbags = bag_scan.image_message_of(msg)
                 assert (from_rosbags.head, bytes(from_rosbags.data), from_rosbags.step) == (
                     whole.head, bytes(whole.data), whole.step)
-                assert bag_index.image_message(raw[:-4 if ros2 else -1], msgtype, ros2) is None  # data cut short
-    assert bag_index.image_head(b"\x00\x00\x00\x00" + bytes(40), bag_topics.IMAGE, ros2=True) is None  # big-endian CDR
+                assert image_messages.image_message(raw[:-4 if ros2 else -1], msgtype, ros2) is None  # data cut short
+    big_endian = b"\x00\x00\x00\x00" + bytes(40)  # a CDR encapsulation header saying big-endian
+    assert image_messages.image_head(big_endian, bag_topics.IMAGE, ros2=True) is None
 
 
 def head_length(raw: bytes, msgtype: str, ros2: bool) -> int:
     """Bytes up to the end of the last field `image_head` reads (found by growing the prefix)."""
-    return next(n for n in range(len(raw) + 1) if bag_index.image_head(raw[:n], msgtype, ros2) is not None)
+    return next(n for n in range(len(raw) + 1) if image_messages.image_head(raw[:n], msgtype, ros2) is not None)
 
 
 @pytest.mark.parametrize("ros2", [False, True])

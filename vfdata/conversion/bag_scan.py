@@ -23,8 +23,9 @@ from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
-from vfdata.conversion.bag_index import ImageHead, ImageMessage, IndexedBag, image_head, open_indexed_bag
+from vfdata.conversion.bag_index import IndexedBag, open_indexed_bag
 from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, WRENCH_STAMPED, TopicChoice, topic_types
+from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError
 from vfdata.recording.cdr import CdrError
@@ -272,7 +273,7 @@ def _head_of(msg) -> ImageHead:
 
 
 def image_message_of(msg) -> ImageMessage:
-    """`bag_index.image_message` of a deserialised Image or CompressedImage message."""
+    """`image_messages.image_message` of a deserialised Image or CompressedImage message."""
     data = memoryview(np.ascontiguousarray(msg.data, np.uint8)).cast("B")
     if hasattr(msg, "encoding"):
         return ImageMessage(_head_of(msg), data, int(msg.is_bigendian), int(msg.step))

@@ -46,7 +46,6 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.bag_index import image_message
 from vfdata.conversion.bag_scan import (
     BagScan,
     ImageStream,
@@ -67,6 +66,7 @@ from vfdata.conversion.bag_topics import (
     choose_topics,
     topic_types,
 )
+from vfdata.conversion.image_messages import image_message
 from vfdata.conversion.ordered_map import ordered_map
 from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
 from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
