@@ -92,6 +92,21 @@ def test_jpeg_frames_are_stored_as_they_are(tmp_path):
     assert left.data != (src / "left" / "000000.jpg").read_bytes()
 
 
+def test_encoding_threads_default_to_one_per_core(monkeypatch, tmp_path):
+    from vfdata.commands import convert as convert_command
+
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    assert ConvertOptions().workers == 3
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(range(32)), raising=False)
+    assert ConvertOptions().workers == 8  # more would wait on the main thread
+    used = []
+    monkeypatch.setattr(convert_command, "convert_raw_folder", lambda src, out, overwrite, options: used.append(
+        options.workers) or out)
+    main(["convert", "--quiet", str(tmp_path / "src"), str(tmp_path / "a.mcap")])
+    main(["convert", "--quiet", "--workers", "5", str(tmp_path / "src"), str(tmp_path / "b.mcap")])
+    assert used == [8, 5]
+
+
 def test_grayscale_jpeg_is_stored_in_colour(tmp_path):
     src = make_raw(tmp_path / "rec", n=4, suffix=".jpg")
     for path in (src / "left").iterdir():

@@ -8,7 +8,7 @@ from pathlib import Path
 from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
-from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.conversion.raw_folder import MAX_DEFAULT_WORKERS, ConvertOptions, convert_raw_folder, default_workers
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -24,7 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="re-encode colour JPEG input frames at --quality (default: store them as they are)")
     p.add_argument("--force-gap-ms", type=float, default=50.0,
                    help="largest gap allowed in the force stream over the video span (default 50 ms)")
-    p.add_argument("--workers", type=int, default=2, help="image encoding threads (default 2)")
+    p.add_argument("--workers", type=int, default=None,
+                   help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
+                        f"{default_workers()} here)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     bag = p.add_argument_group("ROS bags (defaults: dVRK topic names, else auto-detected by type)")
@@ -43,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
-        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), workers=args.workers, progress=not args.quiet,
+        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), workers=args.workers or default_workers(),
+        progress=not args.quiet,
     )
     if is_bag(args.src):
         topics = BagTopics(left=args.left_topic, right=args.right_topic, left_info=args.left_info_topic,
