@@ -744,6 +744,32 @@ def test_split_ros2_bag_converts_like_the_whole(tmp_path, storage):
     assert contents[0] == contents[1]
 
 
+def test_leftover_write_ahead_log_is_reported_and_the_db3_read_as_it_is(tmp_path, caplog):
+    """A ROS 2 bag whose recorder was killed while writing through sqlite's write-ahead log (the
+    resilient preset) has its last messages only in `<file>.db3-wal`: the conversion says so, and
+    reads the .db3 as it is, as `rosbags` does."""
+    bag, crashed = tmp_path / "bag", tmp_path / "crashed"
+    write_bag(bag, BagSpec(ros2=True))
+    clean = raw_messages(convert_bag(bag, tmp_path / "clean.mcap", options=PNG))
+    (db3,) = bag.glob("*.db3")
+    recorder = sqlite3.connect(db3)
+    try:
+        recorder.execute("PRAGMA journal_mode = WAL")
+        recorder.execute("PRAGMA wal_autocheckpoint = 0")  # the last batch stays in the log
+        recorder.execute("INSERT INTO messages (topic_id, timestamp, data) SELECT topic_id, timestamp + 1, data "
+                         "FROM messages WHERE id = (SELECT max(id) FROM messages)")
+        recorder.commit()
+        shutil.copytree(bag, crashed)  # what the disk holds if the recorder is killed now
+    finally:
+        recorder.close()
+    assert bag_scan.leftover_wal_files(crashed) == [crashed / f"{db3.name}-wal"]
+    assert bag_scan.leftover_wal_files(bag) == []  # closed cleanly: sqlite removed it
+    with caplog.at_level(logging.WARNING):
+        out = convert_bag(crashed, tmp_path / "crashed.mcap", options=PNG)
+    assert f"{db3.name}-wal is left beside it (the recording did not end cleanly)" in caplog.text
+    assert raw_messages(out) == clean
+
+
 def raw_messages(path: Path) -> dict[str, list[tuple[int, bytes]]]:
     """Topic -> (log time, payload) of every message, read with the `mcap` package."""
     topics: dict[str, list[tuple[int, bytes]]] = {}

@@ -9,6 +9,7 @@ ROS 2 sqlite3 bags; `bag_index`), the scan reads only the first bytes of each im
 
 from __future__ import annotations
 
+import logging
 from array import array
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -31,6 +32,7 @@ from vfdata.errors import InputError
 from vfdata.recording.cdr import CdrError
 from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, decode_wrench_batch
 
+log = logging.getLogger(__name__)
 
 # -- opening -------------------------------------------------------------------------------------
 def is_bag(path: str | Path) -> bool:
@@ -67,10 +69,27 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
             reader.open()
     except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, FileNotFoundError, KeyError, ValueError) as exc:
         raise InputError(path, f"cannot read the bag ({_first_line(exc)})") from None
+    for wal in leftover_wal_files(path):
+        log.warning("warning: %s: %s is left beside it (the recording did not end cleanly): messages that are "
+                    "only in it, at most the recorder's last batch, are not read", path, wal.name)
     try:
         yield reader
     finally:
         reader.close()
+
+
+def leftover_wal_files(path: str | Path) -> list[Path]:
+    """The non-empty write-ahead logs (`<file>.db3-wal`) beside the sqlite3 files of a ROS 2 bag.
+
+    `ros2 bag record --storage-preset-profile resilient` writes through such a log; sqlite copies it
+    into the .db3 after a commit once it passes 1000 pages, and deletes it when the recording ends.
+    One left behind means the recorder did not end cleanly, and what it wrote last may be only in the
+    log. The bag is read as the .db3 holds it (`rosbags` and our random access both open it
+    immutable): reading the log as well would mean writing a shared-memory file beside the bag."""
+    path = Path(path)
+    files = sorted(path.glob("*.db3")) if path.is_dir() else [path] if path.suffix == ".db3" else []
+    wals = [file.with_name(file.name + "-wal") for file in files]
+    return [wal for wal in wals if wal.is_file() and wal.stat().st_size > 0]
 
 
 # -- scanning -------------------------------------------------------------------------------------
