@@ -438,6 +438,29 @@ def test_output_exists_and_not_a_bag(tmp_path):
         convert_bag(tmp_path, tmp_path / "y.mcap", options=PNG)
 
 
+def test_unfinished_recordings_say_what_to_do(tmp_path):
+    """What a recorder leaves when it is killed: a ROS 1 `.bag.active` without its index, a ROS 2 folder
+    without metadata.yaml. Each gets its own error and remedy, not "not a folder"."""
+    write_bag(tmp_path / "r.bag", BagSpec(frames=2))
+    (tmp_path / "r.bag").rename(tmp_path / "r.bag.active")
+    with pytest.raises(InputError, match=r"unfinished ROS 1 bag .*rosbag reindex"):
+        convert_bag(tmp_path / "r.bag.active", tmp_path / "r.mcap", options=PNG)
+    spec = write_bag(tmp_path / "r2", BagSpec(ros2=True, frames=2))
+    (tmp_path / "r2" / "metadata.yaml").unlink()
+    (db3,) = (tmp_path / "r2").glob("*.db3")
+    assert bag_scan.is_bag(tmp_path / "r2")
+    with pytest.raises(InputError, match=rf"without metadata.yaml .*ros2 bag reindex.* \({db3.name}\)"):
+        convert_bag(tmp_path / "r2", tmp_path / "r2.mcap", options=PNG)
+    assert main(["convert", "--quiet", str(tmp_path / "r2"), str(tmp_path / "r2.mcap")]) == 1
+    assert not (tmp_path / "r2.mcap").exists()
+    check_recording(convert_bag(db3, tmp_path / "alone.mcap", options=PNG), spec)  # the remedy works
+    raw_folder_with_an_output_inside = tmp_path / "raw"
+    raw_folder_with_an_output_inside.mkdir()
+    (raw_folder_with_an_output_inside / "frames.csv").write_text("frame,timestamp_ns\n")
+    (raw_folder_with_an_output_inside / "out.mcap").write_bytes(b"")
+    assert not bag_scan.is_bag(raw_folder_with_an_output_inside)
+
+
 def test_inspect_bag(tmp_path, capsys):
     write_bag(tmp_path / "s.bag", BagSpec(force_topics=("/netft_data", "/PSM1/body/measured_cf")))
     text = inspect_bag_text(tmp_path / "s.bag")

@@ -37,11 +37,17 @@ log = logging.getLogger(__name__)
 # -- opening -------------------------------------------------------------------------------------
 def is_bag(path: str | Path) -> bool:
     """A ROS 1 bag (`.bag` file) or a ROS 2 bag (a folder with metadata.yaml, or one `.db3` or `.mcap`
-    storage file of it)."""
+    storage file of it); also what an unfinished recording leaves (`.bag.active`, a folder of storage
+    files without metadata.yaml), for which `open_bag` says what to do."""
     path = Path(path)
     if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    return path.is_file() and path.suffix in (".bag", ".db3", ".mcap")
+        unfinished = bool(_storage_files(path)) and not (path / "frames.csv").exists()  # frames.csv: a raw folder
+        return (path / "metadata.yaml").is_file() or unfinished
+    return path.is_file() and (path.suffix in (".bag", ".db3", ".mcap") or path.name.endswith(".bag.active"))
+
+
+def _storage_files(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*.db3")) + sorted(folder.glob("*.mcap"))
 
 
 def bag_kind(path: str | Path) -> str:
@@ -57,6 +63,13 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
         raise InputError(path, "bag not found")
     if not is_bag(path):
         raise InputError(path, "not a ROS bag (a .bag file, or a ROS 2 bag folder with metadata.yaml)")
+    if path.name.endswith(".bag.active"):
+        raise InputError(path, "an unfinished ROS 1 bag (rosbag record did not end cleanly) has no index: copy it "
+                               "to NAME.bag, run `rosbag reindex NAME.bag` and convert that")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        raise InputError(path, "a ROS 2 bag folder without metadata.yaml (the recording did not end cleanly?): "
+                               "`ros2 bag reindex` writes one, or convert one storage file alone "
+                               f"({_storage_files(path)[0].name})")
     try:
         try:
             reader = AnyReader([path])
