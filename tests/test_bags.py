@@ -440,7 +440,8 @@ def test_output_exists_and_not_a_bag(tmp_path):
 
 def test_unfinished_recordings_say_what_to_do(tmp_path):
     """What a recorder leaves when it is killed: a ROS 1 `.bag.active` without its index, a ROS 2 folder
-    without metadata.yaml. Each gets its own error and remedy, not "not a folder"."""
+    without metadata.yaml, an MCAP storage file without its end. Each gets its own error and remedy
+    (before: "recording folder not found", "calibration file not found", "File end magic is invalid")."""
     write_bag(tmp_path / "r.bag", BagSpec(frames=2))
     (tmp_path / "r.bag").rename(tmp_path / "r.bag.active")
     with pytest.raises(InputError, match=r"unfinished ROS 1 bag .*rosbag reindex"):
@@ -454,6 +455,13 @@ def test_unfinished_recordings_say_what_to_do(tmp_path):
     assert main(["convert", "--quiet", str(tmp_path / "r2"), str(tmp_path / "r2.mcap")]) == 1
     assert not (tmp_path / "r2.mcap").exists()
     check_recording(convert_bag(db3, tmp_path / "alone.mcap", options=PNG), spec)  # the remedy works
+    mcap = write_bag(tmp_path / "m", BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=2))
+    (file,) = (tmp_path / "m").glob("*.mcap")
+    check_recording(convert_bag(tmp_path / "m", tmp_path / "m.mcap", options=PNG), mcap)
+    file.write_bytes(file.read_bytes()[:-100])  # the recorder killed before the summary and footer
+    for given in (tmp_path / "m", file):
+        with pytest.raises(InputError, match=r"m.mcap: the MCAP file stops before its end .*mcap recover"):
+            convert_bag(given, tmp_path / "m2.mcap", options=PNG)
     raw_folder_with_an_output_inside = tmp_path / "raw"
     raw_folder_with_an_output_inside.mkdir()
     (raw_folder_with_an_output_inside / "frames.csv").write_text("frame,timestamp_ns\n")

@@ -10,6 +10,7 @@ ROS 2 sqlite3 bags; `bag_index`), the scan reads only the first bytes of each im
 from __future__ import annotations
 
 import logging
+import re
 from array import array
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -33,6 +34,7 @@ from vfdata.recording.cdr import CdrError
 from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, decode_wrench_batch
 
 log = logging.getLogger(__name__)
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 # -- opening -------------------------------------------------------------------------------------
 def is_bag(path: str | Path) -> bool:
@@ -47,7 +49,20 @@ def is_bag(path: str | Path) -> bool:
 
 
 def _storage_files(folder: Path) -> list[Path]:
-    return sorted(folder.glob("*.db3")) + sorted(folder.glob("*.mcap"))
+    """The storage files of a ROS 2 bag folder, found by rosbag2's naming (FOLDER_0.db3, FOLDER_1.db3,
+    ...; FOLDER.mcap from other writers), not by metadata.yaml, which a killed recorder may not have
+    written. Other MCAP files in a folder (converted recordings) are not storage files."""
+    stem = re.compile(rf"{re.escape(folder.name)}(_\d+)?\.(db3|mcap)")
+    return sorted(file for file in folder.iterdir() if stem.fullmatch(file.name) and file.is_file())
+
+
+def _ends_with_mcap_magic(file: Path) -> bool:
+    """An MCAP file ends with the magic bytes it starts with; a recorder killed mid-file leaves none."""
+    with open(file, "rb") as stream:
+        if stream.seek(0, 2) < len(_MCAP_MAGIC):
+            return False
+        stream.seek(-len(_MCAP_MAGIC), 2)
+        return stream.read() == _MCAP_MAGIC
 
 
 def bag_kind(path: str | Path) -> str:
@@ -70,6 +85,11 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
         raise InputError(path, "a ROS 2 bag folder without metadata.yaml (the recording did not end cleanly?): "
                                "`ros2 bag reindex` writes one, or convert one storage file alone "
                                f"({_storage_files(path)[0].name})")
+    for file in [path] if path.is_file() else sorted(path.glob("*.mcap")):
+        if file.suffix == ".mcap" and not _ends_with_mcap_magic(file):
+            raise InputError(file, "the MCAP file stops before its end (the recording did not end cleanly?): "
+                                   "`mcap recover` (the mcap CLI) rebuilds it from its complete chunks; convert "
+                                   "a copy of the bag with the rebuilt file in its place")
     try:
         try:
             reader = AnyReader([path])
