@@ -69,6 +69,7 @@ class BagSpec:
     with_images: bool = True
     lz4: bool = False  # ROS 1 chunk compression
     zstd: bool = False  # MCAP storage chunk compression (`ros2 bag record --storage-preset-profile zstd_fast`)
+    compression_mode: CompressionMode | None = None  # `ros2 bag record --compression-mode file|message` (zstd)
     # filled in
     images: list = field(default_factory=list)
     frame_ns: np.ndarray | None = None
@@ -179,6 +180,8 @@ def write_bag(path: Path, spec: BagSpec) -> BagSpec:
         writer = Writer2(path, version=9, storage_plugin=spec.storage)
         if spec.zstd:
             writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        if spec.compression_mode is not None:
+            writer.set_compression(spec.compression_mode, CompressionFormat.ZSTD)
         serialize = ts.serialize_cdr
     else:
         writer = Writer1(path)
@@ -257,6 +260,17 @@ def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type
     assert rec.metadata.extra["pair_max_offset_ns"] == "2000000"
     after = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*") if p != out)
     assert after == before  # the bag is not modified
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])
+@pytest.mark.parametrize("mode", [CompressionMode.FILE, CompressionMode.MESSAGE], ids=["file", "message"])
+def test_compressed_ros2_bags_convert_value_by_value(tmp_path, storage, mode):
+    """`ros2 bag record --compression-mode file|message --compression-format zstd`: streamed through
+    rosbags, which decompresses them."""
+    spec = write_bag(tmp_path / "z", BagSpec(ros2=True, storage=storage, compression_mode=mode, frames=4))
+    assert any(p.suffix == ".zstd" for p in (tmp_path / "z").iterdir()) == (mode == CompressionMode.FILE)
+    assert "reading: streaming through rosbags" in inspect_bag_text(tmp_path / "z")
+    check_recording(convert_bag(tmp_path / "z", tmp_path / "z.mcap", options=PNG), spec)
 
 
 @pytest.mark.parametrize("ros2", [False, True])
