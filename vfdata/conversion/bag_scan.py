@@ -36,6 +36,7 @@ from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, d
 log = logging.getLogger(__name__)
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 
+
 # -- opening -------------------------------------------------------------------------------------
 def is_bag(path: str | Path) -> bool:
     """A ROS 1 bag (`.bag` file) or a ROS 2 bag (a folder with metadata.yaml, or one `.db3` or `.mcap`
