@@ -119,6 +119,11 @@ def bare_jpeg_seconds(frames: list[tuple[np.ndarray, np.ndarray]], workers: int)
     return elapsed, cpu
 
 
+def _bytes(bag: Path) -> int:
+    """Size of a bag file, or of all the files of a ROS 2 bag folder."""
+    return sum(p.stat().st_size for p in bag.rglob("*")) if bag.is_dir() else bag.stat().st_size
+
+
 def timed_conversion(bag: Path, out: Path, options: ConvertOptions) -> tuple[float, float, float]:
     """(wall, CPU, main-thread CPU) seconds of one `convert_bag`."""
     start, cpu, main_cpu = time.perf_counter(), time.process_time(), time.thread_time()
@@ -158,8 +163,7 @@ def main() -> None:
         for kind in kinds:
             bags[kind] = Path(tmp) / ("bench.bag" if kind == "ros1" else kind)
             write_bag(bags[kind], frames, kind, args.force_hz)
-            sizes[kind] = sum(p.stat().st_size for p in bags[kind].rglob("*")) if kind != "ros1" \
-                else bags[kind].stat().st_size
+            sizes[kind] = _bytes(bags[kind])
             timed_conversion(bags[kind], out, options)  # warm-up: imports, page cache
         bare: list[tuple[float, float]] = []
         runs: dict[str, list[tuple[float, float, float]]] = {kind: [] for kind in kinds}
