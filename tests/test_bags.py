@@ -807,8 +807,8 @@ def test_leftover_write_ahead_log_is_reported_and_the_db3_read_as_it_is(tmp_path
         shutil.copytree(bag, crashed)  # what the disk holds if the recorder is killed now
     finally:
         recorder.close()
-    assert bag_scan.leftover_wal_files(crashed) == [crashed / f"{db3.name}-wal"]
-    assert bag_scan.leftover_wal_files(bag) == []  # closed cleanly: sqlite removed it
+    assert (crashed / f"{db3.name}-wal").stat().st_size > 0
+    assert not (bag / f"{db3.name}-wal").exists()  # closed cleanly: sqlite removed it
     with caplog.at_level(logging.WARNING):
         out = convert_bag(crashed, tmp_path / "crashed.mcap", options=PNG)
     assert f"{db3.name}-wal is left beside it (the recording did not end cleanly)" in caplog.text

@@ -43,10 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
-        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), workers=args.workers or default_workers(),
-        progress=not args.quiet,
+        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), progress=not args.quiet, **threads,
     )
     if is_bag(args.src):
         topics = BagTopics(left=args.left_topic, right=args.right_topic, left_info=args.left_info_topic,

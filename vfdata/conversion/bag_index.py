@@ -72,7 +72,7 @@ def open_indexed_bag(reader: AnyReader, path: Path, topics: set[str]) -> Indexed
     try:
         if not reader.is2:
             return _Ros1Bag.open(reader, topics)
-        storage = _ros2_storage(path)
+        storage = ros2_storage(path)
         if storage is None:
             return None
         kind, files = storage
@@ -391,7 +391,7 @@ def _connect(file: Path) -> sqlite3.Connection:
     return db
 
 
-def _ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
+def ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
     """("sqlite3" or "mcap", the storage files) of a ROS 2 bag (a folder, or one .db3 or .mcap file given
     alone); None for other storages and for compressed bags (`ros2 bag record --compression-mode`)."""
     if path.is_file():

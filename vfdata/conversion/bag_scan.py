@@ -19,13 +19,14 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+import yaml
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
-from vfdata.conversion.bag_index import IndexedBag, open_indexed_bag
+from vfdata.conversion.bag_index import IndexedBag, open_indexed_bag, ros2_storage
 from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, WRENCH_STAMPED, TopicChoice, topic_types
 from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
@@ -86,11 +87,18 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
         raise InputError(path, "a ROS 2 bag folder without metadata.yaml (the recording did not end cleanly?): "
                                "`ros2 bag reindex` writes one, or convert one storage file alone "
                                f"({_storage_files(path)[0].name})")
-    for file in [path] if path.is_file() else sorted(path.glob("*.mcap")):
+    try:
+        _, files = ros2_storage(path) or ("", [])
+    except (OSError, KeyError, TypeError, yaml.YAMLError):
+        files = []  # a damaged metadata.yaml: rosbags' error below says so
+    for file in files:
         if file.suffix == ".mcap" and not _ends_with_mcap_magic(file):
             raise InputError(file, "the MCAP file stops before its end (the recording did not end cleanly?): "
                                    "`mcap recover` (the mcap CLI) rebuilds it from its complete chunks; convert "
                                    "a copy of the bag with the rebuilt file in its place")
+    for wal in _leftover_wals(files):
+        log.warning("warning: %s: %s is left beside it (the recording did not end cleanly): messages that are "
+                    "only in it, at most the recorder's last batch, are not read", path, wal.name)
     try:
         try:
             reader = AnyReader([path])
@@ -103,26 +111,21 @@ def open_bag(path: str | Path) -> Iterator[AnyReader]:
             reader.open()
     except (AnyReaderError, Ros1ReaderError, Ros2ReaderError, FileNotFoundError, KeyError, ValueError) as exc:
         raise InputError(path, f"cannot read the bag ({_first_line(exc)})") from None
-    for wal in leftover_wal_files(path):
-        log.warning("warning: %s: %s is left beside it (the recording did not end cleanly): messages that are "
-                    "only in it, at most the recorder's last batch, are not read", path, wal.name)
     try:
         yield reader
     finally:
         reader.close()
 
 
-def leftover_wal_files(path: str | Path) -> list[Path]:
-    """The non-empty write-ahead logs (`<file>.db3-wal`) beside the sqlite3 files of a ROS 2 bag.
+def _leftover_wals(files: list[Path]) -> list[Path]:
+    """The non-empty write-ahead logs (`<file>.db3-wal`) beside these storage files of a ROS 2 bag.
 
     `ros2 bag record --storage-preset-profile resilient` writes through such a log; sqlite copies it
     into the .db3 after a commit once it passes 1000 pages, and deletes it when the recording ends.
     One left behind means the recorder did not end cleanly, and what it wrote last may be only in the
     log. The bag is read as the .db3 holds it (`rosbags` and our random access both open it
     immutable): reading the log as well would mean writing a shared-memory file beside the bag."""
-    path = Path(path)
-    files = sorted(path.glob("*.db3")) if path.is_dir() else [path] if path.suffix == ".db3" else []
-    wals = [file.with_name(file.name + "-wal") for file in files]
+    wals = [file.with_name(file.name + "-wal") for file in files if file.suffix == ".db3"]
     return [wal for wal in wals if wal.is_file() and wal.stat().st_size > 0]
 
 
