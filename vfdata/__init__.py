@@ -1,20 +1,28 @@
-"""VisionForce data: recordings (MCAP), conversion, simulation, reconstruction, tracking, datasets.
+"""VisionForce data: recordings (MCAP), conversion, simulation, reconstruction, tracking, clips.
 
-`vfdata.Recording` is the reader; `vfdata.ForceClipDataset` and `vfdata.ForceDataModule` (which
-import torch and Lightning) load on first use."""
+`vfdata.Recording` is the reader, `vfdata.DerivedRecording` the reader of processed files,
+`vfdata.load_manifest` the dataset manifests and `vfdata.ClipSpec` how clips are made;
+`vfdata.ForceClipDataset` and `vfdata.ForceDataModule` (torch, Lightning) load on first use so that
+the command line starts without them."""
 
 __version__ = "0.1.0"
 
-__all__ = ["Recording", "ForceClipDataset", "ForceDataModule", "__version__"]
+__all__ = ["ClipSpec", "DerivedRecording", "ForceClipDataset", "ForceDataModule", "Recording", "load_manifest",
+           "__version__"]
+
+_WHERE = {
+    "Recording": "vfdata.recording.reader",
+    "DerivedRecording": "vfdata.recording.derived",
+    "load_manifest": "vfdata.manifest",
+    "ClipSpec": "vfdata.clips.spec",
+    "ForceClipDataset": "vfdata.clips.dataset",
+    "ForceDataModule": "vfdata.clips.datamodule",
+}
 
 
 def __getattr__(name: str):
-    if name == "Recording":
-        from vfdata.recording.reader import Recording
+    if name in _WHERE:
+        import importlib
 
-        return Recording
-    if name in ("ForceClipDataset", "ForceDataModule"):
-        from vfdata import datasets
-
-        return getattr(datasets, name)
+        return getattr(importlib.import_module(_WHERE[name]), name)
     raise AttributeError(f"module 'vfdata' has no attribute {name!r}")

@@ -1,0 +1,111 @@
+"""`ForceDataModule`: train/val/test clips of a dataset manifest for Lightning. It knows nothing of the
+network: the model gets the batches and the normalisation statistics of the training split."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import lightning.pytorch as L
+import torch
+from torch.utils.data import DataLoader
+
+from vfdata.clips.dataset import ForceClipDataset, collate_clips
+from vfdata.clips.spec import ClipSpec
+from vfdata.errors import InputError
+from vfdata.manifest import Manifest, load_manifest
+
+DEFAULT_SPEC = ClipSpec()
+
+
+class ForceDataModule(L.LightningDataModule):
+    """Clips of a dataset manifest, split as the manifest says (train and val share an orientation;
+    test recordings are at others).
+
+    Args:
+        manifest: dataset manifest, e.g. datasets/glove.manifest.yaml.
+        spec: how recordings become model input (ClipSpec: input, frame, features, clip length ...).
+        batch_size: clips per batch.
+        num_workers: DataLoader worker processes (0: load in the training process).
+        cache_dir: folder for decoded arrays, reused by later runs (None: no cache).
+        predict_split: the split `trainer.predict` runs over.
+        progress: progress bars while decoding.
+
+    The training split's statistics are `normalisation` (for `ForceRegressor`), and the spec with
+    the measured frame rate is saved with every checkpoint (`datamodule_hyper_parameters["spec"]`),
+    so prediction makes the same tokens.
+    """
+
+    def __init__(self, manifest: str, spec: ClipSpec = DEFAULT_SPEC, batch_size: int = 32, num_workers: int = 0,
+                 cache_dir: str | None = None, predict_split: Literal["train", "val", "test"] = "test",
+                 progress: bool = True):
+        super().__init__()
+        if not isinstance(spec, ClipSpec):  # a dict from a saved config
+            spec = ClipSpec.from_dict(dict(spec))
+        self.manifest: Manifest = load_manifest(manifest)
+        self.spec = spec
+        self.batch_size, self.num_workers, self.cache_dir = batch_size, num_workers, cache_dir
+        self.predict_split, self.progress = predict_split, progress
+        self.datasets: dict[str, ForceClipDataset] = {}
+        self.normalisation: dict[str, torch.Tensor] | None = None
+        self._save_spec()
+
+    def _save_spec(self) -> None:
+        # Plain values only: checkpoints load with torch.load(weights_only=True).
+        self.save_hyperparameters({
+            "manifest": str(self.manifest.path), "spec": self.spec.to_dict(), "batch_size": self.batch_size,
+            "num_workers": self.num_workers, "cache_dir": self.cache_dir, "predict_split": self.predict_split})
+
+    @property
+    def entries(self):
+        return self.manifest.entries
+
+    def dataset(self, split: str) -> ForceClipDataset:
+        if split not in self.datasets:
+            data = ForceClipDataset(self.manifest.split(split), self.spec, self.cache_dir, self.progress)
+            if len(data) == 0:
+                raise InputError(self.manifest.path, f"the '{split}' recordings are shorter than one clip "
+                                                     f"({self.spec.clip_frames} frames)")
+            self.datasets[split] = data
+        return self.datasets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit", "validate"):
+            train = self.dataset("train")
+            self.dataset("val")
+            if self.normalisation is None:
+                self.normalisation = train.normalisation()
+            if self.spec.fps is None:  # measured once, then saved with the checkpoint
+                self.spec = self.spec.with_fps(train.fps)
+                self._save_spec()
+        if stage in (None, "test"):
+            self.dataset("test")
+        if stage == "predict":
+            self.dataset(self.predict_split)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        return DataLoader(self.dataset(split), batch_size=self.batch_size, shuffle=shuffle,
+                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0,
+                          collate_fn=collate_clips, drop_last=False)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader(self.predict_split, shuffle=False)
+
+
+def spec_from_checkpoint_hparams(hparams: dict[str, Any], where: Path) -> ClipSpec:
+    """The ClipSpec a checkpoint was trained with: `spec` (this module), or the flat keys of
+    checkpoints written before ClipSpec existed."""
+    saved = hparams.get("spec")
+    try:
+        return ClipSpec.from_dict(dict(saved) if saved is not None else dict(hparams))
+    except Exception as exc:  # a damaged or foreign checkpoint: say so in one line
+        raise InputError(where, f"the checkpoint's data options are not a valid ClipSpec ({exc})") from None

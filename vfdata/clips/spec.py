@@ -1,0 +1,93 @@
+"""`ClipSpec`: how a recording becomes model input. One frozen dataclass, shared by the dataset, the
+Lightning data module (where jsonargparse reads it as `--data.spec.<field>`), prediction and the
+live estimator, and saved in every checkpoint, so a model always sees what it was trained on."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Literal
+
+from vfdata.errors import VisionForceError
+
+Input = Literal["tracks", "cloud", "rgb", "depth"]
+Source = Literal["processed", "ground_truth"]
+Frame = Literal["object", "camera"]
+Features = Literal["pos_vel", "pos", "vel"]
+Subset = Literal["all", "top_bottom_20"]
+
+FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3}
+INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
+
+
+@dataclass(frozen=True)
+class ClipSpec:
+    """Clips of `clip_frames` consecutive frames, one starting every `stride` frames.
+
+    Args:
+        input: tracks (the tracked points, default), cloud (points drawn from the tissue cloud, no
+            correspondences), rgb (the left image; the RGB baseline) or depth (the tissue-masked depth;
+            the depth ViT baseline).
+        source: processed (the derived MCAPs of `vfdata process`) or ground_truth (the simulator's
+            true material points, for developing models before tracking).
+        frame: object (the object-centred frame, default) or camera (the left camera frame).
+        features: per-point channels: pos_vel (position mm + velocity mm/s), pos or vel.
+        subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
+        clip_frames: frames per clip (T).
+        stride: frames between clip starts.
+        num_points: ground-truth points drawn per recording (source ground_truth).
+        cloud_points: points drawn from the tissue cloud per frame (input cloud).
+        image_size: side of the square images (rgb, depth), pixels.
+        fps: frame rate for velocities; None: measured from the training recordings.
+        seed: seed of the point draws.
+        canonical_side: mirror across the object's XZ plane every recording whose first frame shows
+            the y < 0 flank (y of points and force negated); beyond the paper.
+    """
+
+    input: Input = "tracks"
+    source: Source = "processed"
+    frame: Frame = "object"
+    features: Features = "pos_vel"
+    subset: Subset = "all"
+    clip_frames: int = 16
+    stride: int = 4
+    num_points: int = 256
+    cloud_points: int = 256
+    image_size: int = 112
+    fps: float | None = None
+    seed: int = 0
+    canonical_side: bool = False
+
+    def __post_init__(self) -> None:
+        choices = {"input": INPUT_KEYS, "source": ("processed", "ground_truth"), "frame": ("object", "camera"),
+                   "features": FEATURE_CHANNELS, "subset": ("all", "top_bottom_20")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise VisionForceError(f"{name} '{getattr(self, name)}' is not one of {', '.join(allowed)}")
+        if self.clip_frames < 1 or self.stride < 1:
+            raise VisionForceError("clip_frames and stride must be positive")
+        if self.canonical_side and (self.input != "tracks" or self.frame != "object"):
+            raise VisionForceError("canonical_side mirrors tracked points in the object frame "
+                                   "(input tracks, frame object)")
+
+    @property
+    def input_key(self) -> str:
+        """The batch key of the model input: tokens, images or depth."""
+        return INPUT_KEYS[self.input]
+
+    @property
+    def channels(self) -> int:
+        """Channels per point token (point inputs); clouds carry positions only."""
+        return 3 if self.input == "cloud" else FEATURE_CHANNELS[self.features]
+
+    def with_fps(self, fps: float) -> ClipSpec:
+        return ClipSpec(**{**self.to_dict(), "fps": float(fps)})
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values (for checkpoints, which load with torch.load(weights_only=True))."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> ClipSpec:
+        """A spec from saved values; unknown keys (other data-module options) are ignored."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names and v is not None or k == "fps"})

@@ -1,0 +1,167 @@
+"""Pure array functions from tracked points to model tokens, shared by training (the dataset) and
+inference (prediction, the live estimator): clip layout in time, velocities, point features, the
+top/bottom subset and the mirror across the object's XZ plane."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vfdata.clips.spec import ClipSpec
+from vfdata.errors import VisionForceError
+
+GAP_FACTOR = 1.5  # a frame interval longer than this many nominal periods is a gap
+TOP_BOTTOM_FRACTION = 0.2
+DEFAULT_FPS = 30.0
+
+
+# ---- time ----------------------------------------------------------------------------------------
+
+
+def frame_rate(times_ns: np.ndarray) -> float:
+    """Frames/s from the median frame interval (30 for fewer than two frames)."""
+    dt = np.diff(np.asarray(times_ns, dtype=np.int64))
+    return 1e9 / float(np.median(dt)) if len(dt) else DEFAULT_FPS
+
+
+def segments(times_ns: np.ndarray, gap_factor: float = GAP_FACTOR) -> list[tuple[int, int]]:
+    """Gap-free runs [start, stop) of frame indices: a new run starts after any interval longer than
+    `gap_factor` times the median interval."""
+    times = np.asarray(times_ns, dtype=np.int64)
+    if len(times) < 2:
+        return [(0, len(times))] if len(times) else []
+    dt = np.diff(times)
+    breaks = np.flatnonzero(dt > gap_factor * np.median(dt)) + 1
+    bounds = [0, *breaks.tolist(), len(times)]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+def clip_starts(runs: list[tuple[int, int]], clip_frames: int, stride: int) -> np.ndarray:
+    """First frame of each clip: every `stride` frames within each gap-free run, plus one clip ending
+    on the run's last frame when the stride does not land there. Runs shorter than a clip give none."""
+    starts: list[int] = []
+    for start, stop in runs:
+        if stop - start < clip_frames:
+            continue
+        last = stop - clip_frames
+        run_starts = list(range(start, last + 1, stride))
+        if run_starts[-1] != last:
+            run_starts.append(last)
+        starts.extend(run_starts)
+    return np.asarray(starts, dtype=np.int64)
+
+
+def latest_clip_frames(recording: np.ndarray, frame_time_ns: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """Indices that keep each (recording, frame time) once, from the clip in which the frame had the
+    most history (the latest position in its clip), as a causal online estimator would give it:
+    clips overlap, so a frame is predicted several times. Sorted by recording, then time."""
+    rec = np.asarray(recording).astype(str)
+    times = np.asarray(frame_time_ns, dtype=np.int64)
+    order = np.lexsort((-np.asarray(position), times, rec))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = (rec[order][1:] != rec[order][:-1]) | (times[order][1:] != times[order][:-1])
+    return order[first]
+
+
+# ---- point features ------------------------------------------------------------------------------
+
+
+def velocities(points_mm: np.ndarray, runs: list[tuple[int, int]], fps: float) -> np.ndarray:
+    """(F, N, 3) positions -> velocities in mm/s: central differences within each gap-free run,
+    one-sided at the ends of a run (zero for a one-frame run)."""
+    p = np.asarray(points_mm, dtype=np.float64)
+    v = np.zeros_like(p)
+    for start, stop in runs:
+        q = p[start:stop]
+        if len(q) < 2:
+            continue
+        w = v[start:stop]
+        w[1:-1] = 0.5 * fps * (q[2:] - q[:-2])
+        w[0] = fps * (q[1] - q[0])
+        w[-1] = fps * (q[-1] - q[-2])
+    return v
+
+
+def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[int, int]], fps: float,
+                   features: str) -> tuple[np.ndarray, np.ndarray]:
+    """Tokens (F, N, C) float32 (C = 6 for pos_vel, else 3) and valid (F, N): invalid or non-finite
+    points are zeroed and marked invalid; velocities of points next to an invalid sample are too."""
+    p = np.asarray(points_mm, dtype=np.float64)
+    ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
+    p = np.where(ok[..., None], p, 0.0)
+    parts = []
+    if features in ("pos_vel", "pos"):
+        parts.append(p)
+    if features in ("pos_vel", "vel"):
+        parts.append(velocities(p, runs, fps))
+        # a velocity from a neighbour the tracker lost is meaningless: use only fully seen stencils
+        ok_prev, ok_next = ok.copy(), ok.copy()
+        for start, stop in runs:
+            ok_prev[start + 1:stop] = ok[start:stop - 1]
+            ok_next[start:stop - 1] = ok[start + 1:stop]
+        ok = ok & ok_prev & ok_next
+    if not parts:
+        raise VisionForceError(f"unknown features '{features}' (choose from pos_vel, pos, vel)")
+    tokens = np.concatenate(parts, axis=-1)
+    return np.where(ok[..., None], tokens, 0.0).astype(np.float32), ok
+
+
+def top_bottom(reference_mm: np.ndarray, fraction: float = TOP_BOTTOM_FRACTION) -> np.ndarray:
+    """Indices (sorted) of the points in the lowest and highest `fraction` by z."""
+    z = np.asarray(reference_mm, dtype=np.float64)[:, 2]
+    z = np.where(np.isfinite(z), z, np.nanmedian(z) if np.isfinite(z).any() else 0.0)
+    order = np.argsort(z, kind="stable")
+    k = max(1, int(round(fraction * len(z))))
+    return np.sort(np.unique(np.concatenate([order[:k], order[-k:]])))
+
+
+def seen_side(points_object_mm: np.ndarray, visible: np.ndarray) -> float:
+    """+1.0 when a frame's visible points (N, 3), object frame, lie on the y >= 0 side on average,
+    else -1.0: the flank of the tissue the camera sees."""
+    points = np.asarray(points_object_mm, dtype=np.float64)
+    seen = np.asarray(visible, dtype=bool) & np.isfinite(points).all(axis=1)
+    return -1.0 if seen.any() and points[seen, 1].mean() < 0 else 1.0
+
+
+def mirror_y(values: np.ndarray, side: float) -> np.ndarray:
+    """`values` (..., 3) with y multiplied by `side` (+1 or -1); its own inverse."""
+    return np.asarray(values) * np.array([1.0, side, 1.0], dtype=np.asarray(values).dtype)
+
+
+def recording_side(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray) -> float:
+    """The y factor of a recording whose first frame's points (N, 3) and visibility are given:
+    -1 to mirror it (`spec.canonical_side` and the y < 0 flank seen), else +1."""
+    return seen_side(points_object_mm, visible) if spec.canonical_side else 1.0
+
+
+def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
+                 object_frame: tuple[np.ndarray, np.ndarray] | None = None, keep: np.ndarray | None = None,
+                 fps: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Tracks (F, N, 3) in the object frame (mm, already mirrored by the caller when it should be) +
+    visibility (F, N) -> tokens (F, N', C) float32 and valid (F, N') as `spec` says. `times_ns` cuts
+    velocities at gaps (None: one gap-free run); the camera frame needs `object_frame` (rotation (3, 3)
+    with the object axes as columns, origin (3,) mm); `keep` fixes the top/bottom subset (default:
+    chosen on the first frame)."""
+    points = np.asarray(points_object_mm, dtype=np.float64)
+    visible = np.asarray(visible, dtype=bool)
+    if spec.subset == "top_bottom_20":
+        keep = top_bottom(points[0], TOP_BOTTOM_FRACTION) if keep is None else keep
+        points, visible = points[:, keep], visible[:, keep]
+    if spec.frame == "camera":
+        if object_frame is None:
+            raise VisionForceError("camera-frame tokens need the object frame's rotation and origin")
+        rotation, origin = object_frame
+        points = points @ np.asarray(rotation).T + np.asarray(origin)
+    runs = segments(times_ns) if times_ns is not None else [(0, len(points))]
+    rate = fps or spec.fps or (frame_rate(times_ns) if times_ns is not None else DEFAULT_FPS)
+    return point_features(points, visible, runs, rate, spec.features)
+
+
+def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """`count` points of a cloud (M, 3), without replacement when M >= count; (count, 3) float32 and
+    valid (count,) (all False for an empty cloud)."""
+    points = np.asarray(points_mm, dtype=np.float32)
+    points = points[np.isfinite(points).all(axis=1)]
+    if len(points) == 0:
+        return np.zeros((count, 3), np.float32), np.zeros(count, bool)
+    idx = rng.choice(len(points), size=count, replace=len(points) < count)
+    return points[idx], np.ones(count, bool)

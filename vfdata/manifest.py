@@ -1,0 +1,139 @@
+"""Dataset manifests (`datasets/<name>.manifest.yaml`): which recordings a dataset has, their split,
+orientation and files. The one reader of manifests; docs/architecture.md shows the format.
+
+```yaml
+name: glove
+root: ../data/glove       # folder with the recordings, relative to this file
+recordings:
+  - id: glove_000         # raw folder <root>/<id>/ (or a bag: raw: <file or folder>),
+    orientation_deg: 0    #   converted <root>/<id>.mcap, derived <root>/<id>.processed.mcap
+    split: train          #   (each overridable with raw:, mcap:, processed:)
+    frames: [0, 700]      # optional: only frames [start, stop) of the recording (splits in time)
+    prompt: box:10,20,300,400   # optional: the first frame's tissue prompt for `vfdata process`
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import yaml
+
+from vfdata.errors import InputError
+
+Split = Literal["train", "val", "test"]
+SPLITS: tuple[str, ...] = ("train", "val", "test")
+DERIVED_SUFFIX = ".processed.mcap"
+
+
+@dataclass(frozen=True)
+class ManifestEntry:
+    """One recording of a dataset, with absolute paths."""
+
+    id: str
+    orientation_deg: float
+    split: str
+    raw: Path  # raw recording folder or bag (simulator ground truth lives in raw/ground_truth)
+    mcap: Path  # the recording MCAP (images, force, ECM pose)
+    processed: Path  # the derived MCAP (mask, depth, cloud, tracks)
+    frames: tuple[int, int] | None = None  # [start, stop) frame range, None: every frame
+    prompt: str | None = None  # first-frame tissue prompt ("box:..." or "points:...")
+
+    @property
+    def ground_truth(self) -> Path:
+        return self.raw / "ground_truth"
+
+    def with_processed(self, path: Path) -> ManifestEntry:
+        return replace(self, processed=Path(path))
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A dataset: its name, the file it was read from and its recordings in file order."""
+
+    name: str
+    path: Path
+    entries: tuple[ManifestEntry, ...]
+
+    def split(self, split: str) -> list[ManifestEntry]:
+        """The recordings of one split (train, val or test); an InputError when there are none."""
+        if split not in SPLITS:
+            raise InputError(self.path, f"split '{split}' is not one of {', '.join(SPLITS)}")
+        chosen = [e for e in self.entries if e.split == split]
+        if not chosen:
+            raise InputError(self.path, f"no '{split}' recordings in the manifest")
+        return chosen
+
+    def __iter__(self) -> Iterator[ManifestEntry]:
+        return iter(self.entries)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+
+def _frames(path: Path, rid: str, value) -> tuple[int, int] | None:
+    if value is None:
+        return None
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in value) or not 0 <= value[0] < value[1]):
+        raise InputError(path, f"recording '{rid}': frames must be [start, stop] with 0 <= start < stop, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+def _entry(path: Path, root: Path, item) -> ManifestEntry:
+    if not isinstance(item, dict) or "id" not in item or item.get("split") not in SPLITS:
+        raise InputError(path, f"recording entry {item!r} needs an id and a split (train, val or test)")
+    rid = str(item["id"])
+    try:
+        orientation = float(item.get("orientation_deg", 0.0))
+    except (TypeError, ValueError):
+        raise InputError(path, f"recording '{rid}': orientation_deg must be a number") from None
+    prompt = item.get("prompt")
+    if prompt is not None and not isinstance(prompt, str):
+        raise InputError(path, f"recording '{rid}': prompt must be text such as box:x0,y0,x1,y1")
+    return ManifestEntry(
+        rid, orientation, item["split"], root / str(item.get("raw", rid)),
+        root / str(item.get("mcap", f"{rid}.mcap")), root / str(item.get("processed", f"{rid}{DERIVED_SUFFIX}")),
+        _frames(path, rid, item.get("frames")), prompt,
+    )
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    """The manifest at `path` (docs/architecture.md), paths made absolute relative to its `root`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "dataset manifest not found")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not a valid YAML manifest ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("recordings"), list) or not data["recordings"]:
+        raise InputError(path, "a manifest needs a non-empty 'recordings' list")
+    root = (path.parent / str(data.get("root", "."))).resolve()
+    entries = tuple(_entry(path, root, item) for item in data["recordings"])
+    ids = [e.id for e in entries]
+    if len(set(ids)) != len(ids):
+        raise InputError(path, "recording ids are not unique")
+    return Manifest(str(data.get("name", path.stem.removesuffix(".manifest"))), path.resolve(), entries)
+
+
+def write_manifest(path: str | Path, name: str, entries: list[ManifestEntry]) -> Path:
+    """A manifest with absolute paths (so it can live anywhere), e.g. one per tracker's derived files."""
+    path = Path(path)
+    recordings = []
+    for e in entries:
+        item = {"id": e.id, "orientation_deg": e.orientation_deg, "split": e.split, "raw": str(e.raw),
+                "mcap": str(e.mcap), "processed": str(e.processed)}
+        if e.frames is not None:
+            item["frames"] = list(e.frames)
+        if e.prompt is not None:
+            item["prompt"] = e.prompt
+        recordings.append(item)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_text(yaml.safe_dump({"name": name, "recordings": recordings}, sort_keys=False))
+    tmp.replace(path)
+    return path
