@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
+import torch
 
 from vfdata import metrics
-from vfdata.errors import BackendError
+from vfdata.errors import BackendError, InputError
 from vfdata.tracking import CoTrackerTracker, GroundTruthTracker, KLTTracker, ground_truth_tracks, load_cotracker
 from vfdata.tracking.synthetic import CAMERA, DeformingSheet, press_and_stretch, rigid_translation
 
@@ -69,6 +70,9 @@ def test_cotracker_needs_a_checkpoint(tmp_path):
     with pytest.raises(BackendError, match="checkpoint not found"):
         CoTrackerTracker(np.zeros((10, 3)), CAMERA, missing)
     missing.write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="not a readable CoTracker3 checkpoint"):
+        load_cotracker(missing)
+    torch.save({"model": {"weight": torch.zeros(2)}}, missing)  # tensors, but not CoTracker's
     try:
         import cotracker  # noqa: F401
     except ImportError:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from vfdata.sim.presets import PRESETS
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from vfdata.sim.presets import PRESETS
-
     p = subparsers.add_parser(
         "synth",
         help="simulate recordings with ground truth (raw folders + dataset manifest)",
@@ -32,6 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Here, not at the top: it loads the renderer's compiled kernels, which no other command needs.
     from vfdata.sim import synthesize
 
     path = synthesize(args.preset, args.out_dir, seed=args.seed, workers=args.workers,

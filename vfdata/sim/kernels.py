@@ -3,9 +3,9 @@ perspective-correct interpolation, bump mapping, shading and tone mapping.
 
 Each kernel is one loop over the pixels (or triangles) that does in one pass what numpy needs a dozen
 array passes for. They run single-threaded (a synthesis worker is one process per core) and in a fixed
-order, so their output is the same from run to run. `cache=True` stores the machine code beside this
-file (or, where that is not writable, in numba's per-user cache), so only the first process ever
-compiles; later processes load it in a fraction of a second. `error_model="numpy"`: a division by
+order, so their output is the same from run to run. The machine code is cached in the user's own
+cache folder (vfdata.sim.jit_cache; never beside this file), so only the first process ever compiles;
+later processes load it in a fraction of a second. `error_model="numpy"`: a division by
 zero gives inf / nan as in numpy instead of raising (and the loops need no check for it). `nogil`: a
 kernel lets the synthesis' encoder thread run beside it.
 
@@ -20,7 +20,9 @@ import math
 import numpy as np
 from numba import njit
 
-_JIT = {"cache": True, "error_model": "numpy", "nogil": True}
+from vfdata.sim.jit_cache import enable_cache
+
+_JIT = {"cache": enable_cache(), "error_model": "numpy", "nogil": True}
 
 # Sub-pixel precision of the rasteriser's edge tests: vertices snap to 1/256 pixel, and the tests are
 # exact integer arithmetic, so triangles sharing an edge cover every pixel along it exactly once.

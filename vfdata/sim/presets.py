@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vfdata.errors import VisionForceError
-from vfdata.sim.render import Palette
+from vfdata.sim.texture import Palette
 
 FPS = 30.0
 

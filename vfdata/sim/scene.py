@@ -19,7 +19,6 @@ from vfdata.sim.render import (
     Light,
     Mesh,
     NoisePool,
-    Palette,
     blur,
     box_mesh,
     bump_in_frame,
@@ -27,15 +26,14 @@ from vfdata.sim.render import (
     capped_tube_mesh,
     cylinder_mesh,
     finish,
-    fractal_noise,
     grid_quads,
-    make_texture,
     rasterize,
     rotation_about,
     shade,
     tone_map,
     vignette,
 )
+from vfdata.sim.texture import Palette, fractal_noise, make_texture
 from vfdata.sim.tissue import SurfaceMap, Tube, outward_normals
 
 # Instrument and fixture materials: (albedo linear RGB, gloss, shininess).

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MOVE_KINDS = ("stretch", "lift", "lateral", "combined", "twist", "return")
 # Moves are drawn without replacement from this bag (refilled when empty) so that every recording
 # exercises every direction: lateral pulls alternate sides, combined pulls come twice per round.
 _MOVE_BAG = ("stretch", "lift", "lateral", "lateral", "combined", "combined", "twist", "return")

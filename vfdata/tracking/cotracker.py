@@ -17,9 +17,10 @@ import numpy as np
 import torch
 
 from vfdata.calibration import PinholeCamera
-from vfdata.errors import BackendError
+from vfdata.errors import BackendError, InputError
 from vfdata.tracking.lifting import lift_pixels
 from vfdata.tracking.sampling import select_reference_points
+from vfdata.weights import load_weights
 
 CHECKPOINT_HINT = "download scaled_offline.pth from https://huggingface.co/facebook/cotracker3"
 
@@ -31,17 +32,25 @@ def load_cotracker(checkpoint: str | Path | None, device: str = "cpu", window_le
     path = Path(checkpoint)
     if not path.is_file():
         raise BackendError(f"{path}: CoTracker3 checkpoint not found ({CHECKPOINT_HINT})")
-    try:
+    # Read by us, tensors only, before the package sees the file: its own loader unpickles whatever
+    # the file holds (torch.load without weights_only).
+    state = load_weights(path, "CoTracker3 checkpoint")
+    if isinstance(state, dict) and "model" in state:
+        state = state["model"]
+    if not isinstance(state, dict):
+        raise InputError(path, f"a CoTracker3 checkpoint holds a state dict, not a {type(state).__name__}")
+    try:  # an optional package, installed by the user with its weights
         from cotracker.predictor import CoTrackerPredictor
     except ImportError as exc:
         raise BackendError(
             "cotracker: the 'cotracker' package is not installed "
             "(pip install git+https://github.com/facebookresearch/co-tracker)"
         ) from exc
+    model = CoTrackerPredictor(checkpoint=None, offline=True, window_len=window_len)
     try:
-        model = CoTrackerPredictor(checkpoint=str(path), offline=True, window_len=window_len)
-    except Exception as exc:  # a truncated or foreign file fails deep inside torch.load / load_state_dict
-        raise BackendError(f"{path}: not a CoTracker3 offline checkpoint ({exc})") from exc
+        model.model.load_state_dict(state)
+    except RuntimeError as exc:
+        raise BackendError(f"{path}: not a CoTracker3 offline checkpoint ({str(exc).splitlines()[0]})") from exc
     return model.to(device).eval()
 
 

@@ -19,11 +19,8 @@ from tqdm import tqdm
 from vfdata import metrics
 from vfdata.calibration import PinholeCamera, StereoCalibration
 from vfdata.errors import InputError
-from vfdata.tracking.geometry import GeometryTracker
 from vfdata.tracking.groundtruth import ground_truth_tracks
-from vfdata.tracking.klt import KLTTracker
-
-TRACKERS = ("geometry", "geometry+", "klt", "static", "groundtruth")
+from vfdata.tracking.registry import TRACKERS, FrameInputs, make_tracker
 
 
 @dataclass
@@ -119,45 +116,48 @@ def run_tracker(
     progress: bool = False,
     **options,
 ) -> TrackingRun:
-    """Track `num_points` points through the first `frames` frames of `rec` with tracker `name`."""
+    """Track `num_points` points through the first `frames` frames of `rec` with tracker `name`
+    (one of TRACKERS; `options` go to it). The timings count the tracker's own work only: reading
+    the frame's inputs is left out, and an offline tracker is timed on the whole clip."""
     if name not in TRACKERS:
         raise ValueError(f"unknown tracker {name!r} (choose from {', '.join(TRACKERS)})")
     count = rec.num_frames if frames is None else min(frames, rec.num_frames)
-    reference_cloud = rec.cloud(0, cloud_points, seed)
-    reference_image = rec.image(0)
-    if name in ("geometry", "geometry+"):
-        tracker = GeometryTracker(reference_cloud, rec.camera, num_points, seed, mode=name,
-                                  reference_image=reference_image, **options)
-    elif name == "klt":
-        tracker = KLTTracker(reference_cloud, rec.camera, reference_image, num_points, seed, **options)
-    else:
-        tracker = GeometryTracker(reference_cloud, rec.camera, num_points, seed)  # only for its selection
-    points = [tracker.points]
-    visible = [rec.camera.in_mask(tracker.points, rec.mask(0))]
-    truth = None
-    if name == "groundtruth":
-        truth, _ = ground_truth_tracks(tracker.reference, rec.material_points, rec.material_normals)
+    first = FrameInputs(index=0, camera=rec.camera, image_bgr=rec.image(0), depth_mm=rec.depth_mm(0),
+                        mask=rec.mask(0), cloud_mm=rec.cloud(0, cloud_points, seed))
+    tracker = make_tracker(name, first, num_points, seed,
+                           ground_truth=(rec.material_points, rec.material_normals), **options)
+    points, visible = [tracker.points], [tracker.visible]
     wall = cpu = 0.0
     for f in tqdm(range(1, count), desc=name, disable=not progress, leave=False):
-        mask = rec.mask(f)
-        if name == "klt":
-            image, depth = rec.image(f), rec.depth_mm(f)
-        elif name in ("geometry", "geometry+"):
-            cloud = rec.cloud(f, cloud_points, seed)
-            image = rec.image(f) if name == "geometry+" else None
+        frame = _frame_inputs(rec, f, tracker.inputs, cloud_points, seed)
         t0, c0 = time.perf_counter(), time.process_time()
-        if name == "klt":
-            p, v = tracker.update(image, depth, mask)
-        elif name in ("geometry", "geometry+"):
-            p, v = tracker.update(cloud, mask, image=image)
+        if tracker.offline:
+            tracker.collect(frame)
         else:
-            p = truth[f] if name == "groundtruth" else points[0]
-            v = rec.camera.in_mask(p, mask)
+            p, v = tracker.update(frame)
+            points.append(p)
+            visible.append(v)
         wall += time.perf_counter() - t0
         cpu += time.process_time() - c0
-        points.append(p)
-        visible.append(v)
+    if tracker.offline:
+        t0, c0 = time.perf_counter(), time.process_time()
+        all_points, all_visible = tracker.finish()
+        wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0
+        points, visible = list(all_points), list(all_visible)
     return TrackingRun(name, np.stack(points), np.stack(visible), wall, cpu)
+
+
+def _frame_inputs(rec: SimRecording, frame: int, needed: frozenset[str], cloud_points: int, seed: int) -> FrameInputs:
+    """The inputs of `frame` that a tracker reads (reading the others would only cost time)."""
+    return FrameInputs(
+        index=frame,
+        camera=rec.camera,
+        image_bgr=rec.image(frame) if "image_bgr" in needed else None,
+        depth_mm=rec.depth_mm(frame) if "depth_mm" in needed else None,
+        mask=rec.mask(frame),
+        cloud_mm=rec.cloud(frame, cloud_points, seed) if "cloud_mm" in needed else None,
+    )
 
 
 def score(run: TrackingRun, rec: SimRecording) -> dict:

@@ -1,0 +1,50 @@
+"""Network weights from files the user gives: tensors only, never pickled code.
+
+`torch.load` unpickles; a checkpoint can name any callable to be called while it loads (a crafted
+file runs a command). With `weights_only=True` torch's unpickler accepts tensors, containers and plain
+values only, whatever torch's default is in the installed version (it changed in 2.6; pyproject asks
+for torch>=2.4). Every loader of third-party weights (Stereo Any Video, the tissue detector,
+CoTracker) goes through `load_weights`.
+"""
+
+from __future__ import annotations
+
+import pickle
+import re
+from pathlib import Path
+from typing import Any
+
+from vfdata.errors import InputError
+
+
+def load_weights(path: str | Path, what: str) -> Any:
+    """The object saved in `path` by `torch.save` (a state dict, or dicts of them), on the CPU.
+
+    `what` names the file's role in the messages ("Stereo Any Video checkpoint"). A file that needs
+    pickled code to load is refused with an InputError naming it, before any of that code runs; an
+    unreadable one (truncated, not a torch file) too."""
+    import torch  # heavy, and only the optional network backends need it
+
+    path = Path(path)
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        # torch's restricted unpickler names the callable it refused to import ("GLOBAL os.system").
+        named = re.search(r"GLOBAL\s+([\w.]+)", str(exc))
+        if named is None:  # not a pickle torch writes: a damaged or foreign file
+            raise InputError(path, f"not a readable {what} (not a file torch.save wrote)") from None
+        raise InputError(
+            path,
+            f"{what} holds pickled code ({named.group(1)}), not only tensors, and was refused without "
+            "running it; load it where you trust it and save its state_dict() instead",
+        ) from None
+    except OSError:
+        raise
+    except Exception as exc:  # torch reports damaged files as RuntimeError, KeyError, EOFError, ...
+        raise InputError(path, f"not a readable {what} ({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    """The exception's class and the first sentence of its message."""
+    text = str(exc).strip().split("\n")[0].split(". ")[0]
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
