@@ -39,18 +39,17 @@ import numpy as np  # noqa: E402
 
 from vfdata.sim.png import encode_png16  # noqa: E402
 from vfdata.sim.presets import get_preset  # noqa: E402
-from vfdata.sim.render import warm_up  # noqa: E402
-from vfdata.sim.scene import SceneRenderer  # noqa: E402
-from vfdata.sim.synthesize import (  # noqa: E402
-    _PNG_MASK,
+from vfdata.sim.raw_writer import (  # noqa: E402
     IMAGE_FORMATS,
     N_MATERIAL_POINTS,
-    build_recording,
+    PNG_MASK,
     ground_truth_images,
     point_visibility,
-    simulate,
-    synthesize,
 )
+from vfdata.sim.render import warm_up  # noqa: E402
+from vfdata.sim.scene import SceneRenderer  # noqa: E402
+from vfdata.sim.simulation import build_recording, simulate  # noqa: E402
+from vfdata.sim.synthesize import synthesize  # noqa: E402
 
 TARGET_FPS = 30.0
 
@@ -83,7 +82,7 @@ def breakdown(preset: str, frames: int, image_format: str, recordings: int = 4) 
             cv2.imencode(suffix, f.right, params)
             t2 = time.process_time()
             mask, depth = ground_truth_images(f.mask, f.depth_mm)
-            cv2.imencode(".png", mask, _PNG_MASK)
+            cv2.imencode(".png", mask, PNG_MASK)
             encode_png16(depth)
             t3 = time.process_time()
             p, n = point_map.evaluate_scattered(rec.model.nodes)

@@ -1,5 +1,5 @@
 """Third-party network weights load as tensors only: a checkpoint that pickles code is refused by
-every loader (Stereo Any Video, the tissue detector, CoTracker) before any of it runs."""
+every loader (Stereo Any Video, SAM2, the tissue detector, CoTracker) before any of it runs."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from vfdata.errors import InputError  # noqa: E402
-from vfdata.recon import DetectorPrompt, make_depth_estimator  # noqa: E402
+from vfdata.recon import DetectorPrompt, make_depth_estimator, make_segmenter  # noqa: E402
 from vfdata.tracking import load_cotracker  # noqa: E402
 from vfdata.weights import load_weights  # noqa: E402
 
@@ -71,6 +71,8 @@ def test_every_loader_refuses_pickled_code(tmp_path, code_checkpoint):
     (checkout / "models" / "core" / "stereoanyvideo.py").write_text("raise SystemExit('imported')\n")
     with pytest.raises(InputError, match="Stereo Any Video checkpoint holds pickled code"):
         make_depth_estimator("stereoanyvideo", code=checkout, checkpoint=path, device="cpu")
+    with pytest.raises(InputError, match="SAM2 checkpoint holds pickled code"):
+        make_segmenter("sam2", config="configs/sam2.1/sam2.1_hiera_l.yaml", checkpoint=path, device="cpu")
     with pytest.raises(InputError, match="CoTracker3 checkpoint holds pickled code"):
         load_cotracker(path)
     assert not marker.exists()

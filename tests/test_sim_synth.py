@@ -183,3 +183,53 @@ def test_cli_writes_the_manifest(tmp_path, capsys):
     assert (tmp_path / "d" / "mini_002" / "left" / "000000.jpg").is_file()
     assert main(["synth", "--preset", "mini", str(tmp_path / "p"), "--frames", "1", "--image-format", "png"]) == 0
     assert (tmp_path / "p" / "mini_002" / "left" / "000000.png").is_file()
+
+
+def test_test_orientations_spread_over_the_test_recordings():
+    from vfdata.errors import VisionForceError
+    from vfdata.sim.presets import with_test_orientations
+
+    glove = PRESETS["glove"]
+    # The preset's own orientations are this very spread.
+    assert with_test_orientations(glove, [90, 180]) == glove
+    turned = with_test_orientations(glove, [0, 60, 120])
+    assert [(r.id, r.orientation_deg) for r in turned.recordings if r.split == "test"] == [
+        ("glove_016", 0.0), ("glove_017", 0.0), ("glove_018", 60.0), ("glove_019", 120.0)]
+    # Only the test recordings turn; their number, ids and lengths stay.
+    for before, after in zip(glove.recordings, turned.recordings, strict=True):
+        assert (before.id, before.split, before.frames) == (after.id, after.split, after.frames)
+        assert before.split == "test" or before.orientation_deg == after.orientation_deg
+    with pytest.raises(VisionForceError, match="'mini' has 1 test recording"):
+        with_test_orientations(PRESETS["mini"], [90, 180])
+    with pytest.raises(VisionForceError, match="at least one"):
+        with_test_orientations(glove, [])
+
+
+def test_a_turned_test_recording_is_seen_from_elsewhere():
+    from dataclasses import replace
+
+    from vfdata.sim.simulation import build_recording
+
+    plan = PRESETS["mini"].recordings[2]
+    at = {deg: build_recording(replace(plan, orientation_deg=deg), seed=0, frames=2) for deg in (0.0, 60.0)}
+    # The scope looks from the same side of the room, at another point: along the turned tissue.
+    assert not np.allclose(at[0.0].spec.cam.position_w_mm, at[60.0].spec.cam.position_w_mm)
+    r_co = {deg: rec.spec.object_to_camera()[0] for deg, rec in at.items()}
+    assert not np.allclose(r_co[0.0], r_co[60.0])  # the tissue lies otherwise in the image
+
+
+def test_cli_test_orientations_reach_the_manifest_and_the_metadata(tmp_path, capsys):
+    out = tmp_path / "turned"
+    assert main(["synth", "--preset", "mini", str(out), "--frames", "1", "--test-orientations", "60"]) == 0
+    manifest = yaml.safe_load((out / "mini.manifest.yaml").read_text())
+    assert [(r["id"], r["orientation_deg"]) for r in manifest["recordings"]] == [
+        ("mini_000", 0), ("mini_001", 0), ("mini_002", 60)]
+    meta = yaml.safe_load((out / "mini_002" / "meta.yaml").read_text())
+    assert meta["orientation_deg"] == 60 and "--test-orientations 60" in meta["source"]
+    assert json.loads((out / "mini_002/ground_truth/params.json").read_text())["orientation_deg"] == 60
+    # The same folder at the preset's orientation is another recording: refused, not kept.
+    assert main(["synth", "--preset", "mini", str(out), "--frames", "1"]) == 1
+    assert "mini_002: output exists" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["synth", "--preset", "mini", str(out), "--test-orientations", "ninety"])
+    assert "not a comma-separated list of degrees" in capsys.readouterr().err

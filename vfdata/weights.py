@@ -3,8 +3,8 @@
 `torch.load` unpickles; a checkpoint can name any callable to be called while it loads (a crafted
 file runs a command). With `weights_only=True` torch's unpickler accepts tensors, containers and plain
 values only, whatever torch's default is in the installed version (it changed in 2.6; pyproject asks
-for torch>=2.4). Every loader of third-party weights (Stereo Any Video, the tissue detector,
-CoTracker) goes through `load_weights`.
+for torch>=2.4). Every loader of third-party weights (Stereo Any Video, SAM2, the tissue detector,
+CoTracker) goes through `load_weights`, and hands the packages a state dict, never the file.
 """
 
 from __future__ import annotations

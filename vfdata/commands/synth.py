@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from vfdata.sim.presets import PRESETS
@@ -26,9 +27,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--image-format", choices=["jpeg", "png"], default="jpeg",
                    help="stereo views as JPEG quality 95 (default, fast) or lossless PNG; the ground truth "
                    "is always lossless PNG")
+    p.add_argument("--test-orientations", type=_orientations, default=None, metavar="DEG[,DEG...]",
+                   help="turn the preset's test recordings to these orientations (degrees about the vertical), "
+                   "spread over them as evenly as possible, e.g. 90,180 or 60 (default: the preset's)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing recordings made with other settings")
     p.set_defaults(func=run)
+
+
+def _orientations(text: str) -> tuple[float, ...]:
+    """'90,180' -> (90.0, 180.0); anything else is a usage error naming the option."""
+    try:
+        angles = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a comma-separated list of degrees (e.g. 90,180)") from None
+    if not all(math.isfinite(a) for a in angles):
+        raise argparse.ArgumentTypeError(f"'{text}': angles must be finite numbers of degrees")
+    return angles
 
 
 def run(args: argparse.Namespace) -> int:
@@ -37,6 +52,6 @@ def run(args: argparse.Namespace) -> int:
 
     path = synthesize(args.preset, args.out_dir, seed=args.seed, workers=args.workers,
                       progress=sys.stderr.isatty(), frames=args.frames, overwrite=args.overwrite,
-                      image_format=args.image_format)
+                      image_format=args.image_format, test_orientations=args.test_orientations)
     print(path)
     return 0

@@ -19,6 +19,7 @@ import functools
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import BackendError, InputError
@@ -136,8 +137,6 @@ def remove_statistical_outliers(
 ) -> np.ndarray:
     """Drop points whose mean distance to their `neighbors` nearest neighbours exceeds the cloud's
     mean of that distance by more than `std_ratio` standard deviations (open3d's definition)."""
-    from scipy.spatial import cKDTree
-
     if len(points) <= neighbors:
         return points
     dist, _ = cKDTree(points).query(points, k=neighbors + 1)
@@ -148,7 +147,7 @@ def remove_statistical_outliers(
 @functools.lru_cache(maxsize=1)
 def _open3d():
     """The open3d module, or None when it does not import (it needs libusb-1.0 on Linux)."""
-    try:
+    try:  # optional, and its import can fail at run time: imported on first use only
         import open3d as o3d
     except ImportError:
         return None

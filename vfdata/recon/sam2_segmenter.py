@@ -12,6 +12,7 @@ import numpy as np
 from vfdata.errors import BackendError, InputError
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.segmenter import Segmenter
+from vfdata.weights import load_weights
 
 
 class Sam2Segmenter(Segmenter):
@@ -35,6 +36,13 @@ class Sam2Segmenter(Segmenter):
         checkpoint = Path(checkpoint).expanduser()
         if not checkpoint.is_file():
             raise BackendError(f"sam2: checkpoint {checkpoint} not found")
+        # Read by us, tensors only, before the package is imported: older sam2 releases call
+        # torch.load without weights_only.
+        state = load_weights(checkpoint, "SAM2 checkpoint")
+        if isinstance(state, dict) and "model" in state:
+            state = state["model"]
+        if not isinstance(state, dict):
+            raise InputError(checkpoint, f"a SAM2 checkpoint holds a state dict, not a {type(state).__name__}")
         try:  # an optional package, installed by the user with its weights
             from sam2.build_sam import build_sam2_video_predictor
         except ImportError as exc:
@@ -42,12 +50,14 @@ class Sam2Segmenter(Segmenter):
                 f"sam2: the 'sam2' package is not installed ({exc}); "
                 "pip install it from github.com/facebookresearch/sam2"
             ) from exc
-        try:
-            self._predictor = build_sam2_video_predictor(config, str(checkpoint), device=device)
+        try:  # without a checkpoint: the package builds the model only, and we load the weights
+            self._predictor = build_sam2_video_predictor(config, None, device=device)
         except Exception as exc:  # hydra/config errors come in many types
-            raise BackendError(
-                f"sam2: cannot build the predictor from {config} + {checkpoint}: {exc}"
-            ) from exc
+            raise BackendError(f"sam2: cannot build the predictor from {config}: {exc}") from exc
+        try:
+            self._predictor.load_state_dict(state)
+        except RuntimeError as exc:
+            raise BackendError(f"sam2: {checkpoint} does not fit {config}: {str(exc).splitlines()[0]}") from exc
         self.config, self.checkpoint, self.device = config, checkpoint, device
         self._frames: list[np.ndarray] = []
         self._prompt: Prompt | None = None

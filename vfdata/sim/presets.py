@@ -8,7 +8,9 @@ frames, 7:1.5:1.5); `mini` is a few hundred frames per recording for tests and t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 from vfdata.errors import VisionForceError
 from vfdata.sim.texture import Palette
@@ -147,7 +149,32 @@ PRESETS: dict[str, Preset] = {
 }
 
 
-def get_preset(name: str) -> Preset:
+def get_preset(name: str, test_orientations: Sequence[float] | None = None) -> Preset:
+    """The preset `name`, with its test recordings turned to `test_orientations` if given
+    (`with_test_orientations`)."""
     if name not in PRESETS:
         raise VisionForceError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
-    return PRESETS[name]
+    preset = PRESETS[name]
+    return preset if test_orientations is None else with_test_orientations(preset, test_orientations)
+
+
+def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Preset:
+    """The preset with its test recordings spread over `orientations` (degrees about the vertical),
+    in order and as evenly as possible: of n test recordings and k orientations, recording j gets
+    orientation floor(j k / n) (the preset's own 90, 180 over four recordings: 90, 90, 180, 180).
+    Their number, ids and lengths stay; as for the preset's own, the camera's viewpoint and the
+    tissue's place in the image follow from the orientation and the recording's draws."""
+    orientations = [float(a) for a in orientations]
+    tests = [r for r in preset.recordings if r.split == "test"]
+    if not orientations:
+        raise VisionForceError("test orientations: give at least one angle in degrees")
+    bad = [a for a in orientations if not math.isfinite(a)]
+    if bad:
+        raise VisionForceError(f"test orientations: {bad[0]} is not an angle in degrees")
+    if len(orientations) > len(tests):
+        raise VisionForceError(f"test orientations: preset '{preset.name}' has {len(tests)} test recording(s), "
+                               f"fewer than the {len(orientations)} orientations given")
+    turned = {r.index: orientations[j * len(orientations) // len(tests)] for j, r in enumerate(tests)}
+    recordings = tuple(replace(r, orientation_deg=turned[r.index]) if r.index in turned else r
+                       for r in preset.recordings)
+    return replace(preset, recordings=recordings)

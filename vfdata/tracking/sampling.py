@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 def farthest_point_sampling(points: np.ndarray, num_points: int, seed: int = 0) -> np.ndarray:
@@ -41,8 +42,6 @@ def isolated_points(points: np.ndarray, factor: float = ISOLATION_FACTOR, k: int
     tissue) or the sparse samples of a surface seen at a grazing angle. Farthest-point sampling picks them
     first, being far from everything, and the tracker's Chamfer term then pulls them towards a cloud
     that has no samples near them, dragging the whole shared displacement field (docs/tracking.md)."""
-    from scipy.spatial import cKDTree
-
     points = np.asarray(points, dtype=np.float64)
     if factor <= 0 or len(points) <= k:
         return np.zeros(len(points), dtype=bool)
