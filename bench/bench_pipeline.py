@@ -2,7 +2,7 @@
 
     python bench/bench_pipeline.py [--recording REC.mcap] [--ckpt CKPT] [--frames 120] [--threads 2]
 
-Feeds the frames of a recording one by one to `vfdata.predict.StreamingForceEstimator` (depth, tissue
+Feeds the frames of a recording one by one to `vfmodels.live.StreamingForceEstimator` (depth, tissue
 mask, tissue cloud, geometry tracking, point tokens + Set Transformer + LSTM) and prints ms/frame and
 frames/s per stage, the end-to-end rate and the per-frame latency (median, p95). Decoding the
 compressed images stands in for the camera driver and is timed separately, not in the total.
@@ -68,9 +68,10 @@ def main() -> int:
 
     import cv2
 
-    from vfdata.predict import StreamingForceEstimator
-    from vfdata.processing import camera_up
+    from vfdata.engine import EngineOptions
+    from vfdata.processing import camera_up, recording_prompt
     from vfdata.recording import Recording
+    from vfmodels.live import StreamingForceEstimator
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -79,9 +80,7 @@ def main() -> int:
     ckpt = args.ckpt or untrained_checkpoint(args.workdir / "untrained.ckpt")
 
     with Recording.open(recording) as rec:
-        prompt = rec.metadata.extra.get("prompt_box", "")
-        values = prompt.strip("[]").split(",")
-        prompt = "box:" + ",".join(str(int(round(float(v)))) for v in values)
+        prompt = recording_prompt(rec, recording, None)
         n = min(args.frames, rec.num_frames)
         started = time.perf_counter()
         frames = [rec.rectified_frame(i) for i in range(n)]
@@ -94,8 +93,7 @@ def main() -> int:
             camera,
             baseline_mm,
             prompt,
-            depth=args.depth,
-            segment=args.segment,
+            EngineOptions(depth=args.depth, segment=args.segment),
             up=up,
             pipelined=pipelined,
             window=None if args.window == 0 else args.window,

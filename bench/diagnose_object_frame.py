@@ -25,9 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vfdata.datasets import load_manifest
-from vfdata.predict import read_tracks
-from vfdata.recording import Recording, layout
+from vfdata.manifest import load_manifest
+from vfdata.recording.derived import read_tracks
 from vfdata.tracking import ground_truth_tracks
 
 
@@ -44,17 +43,16 @@ def main() -> None:
     parser.add_argument("manifest", type=Path)
     parser.add_argument("--results", type=Path, help="results folder with runs/proposed/seed0/predictions.npz")
     args = parser.parse_args()
-    _, entries = load_manifest(args.manifest)
+    entries = list(load_manifest(args.manifest).entries)
 
     print("1. object frame: estimated vs true")
     print(f"{'recording':>10} {'deg':>4} {'Z err':>6} {'X err':>6} {'|origin|':>8} {'along Z':>7} {'across':>6}")
     frames = {}
     for e in entries:
         gt = json.loads((e.raw / "ground_truth" / "object_frame.json").read_text())
-        with Recording.open(e.processed) as rec:
-            est = json.loads(rec.metadata_records[layout.DERIVED_METADATA]["object_frame"])
+        est = read_tracks(e.processed).frame
         r_true, o_true = np.array(gt["rotation"]), np.array(gt["origin_mm"])
-        r_est, o_est = np.array(est["rotation"]), np.array(est["origin"])
+        r_est, o_est = est.rotation, est.origin
         frames[e.id] = (r_true, o_true, r_est, o_est)
         offset = o_est - o_true
         along = float(offset @ r_true[:, 2])
@@ -85,11 +83,12 @@ def main() -> None:
     for e in entries:
         gt = e.raw / "ground_truth"
         tracks = read_tracks(e.processed)
-        cam = tracks.points_object_mm @ tracks.rotation.T + tracks.origin_mm
+        rotation, origin = tracks.frame.rotation, tracks.frame.origin
+        cam = tracks.points_object_mm @ rotation.T + origin
         truth, _ = ground_truth_tracks(cam[0], np.load(gt / "points.npy", mmap_mode="r"),
                                        np.load(gt / "normals.npy", mmap_mode="r"))
         n = min(len(cam), len(truth))
-        err = tracks.points_object_mm[:n] - (truth[:n] - tracks.origin_mm) @ tracks.rotation
+        err = tracks.points_object_mm[:n] - (truth[:n] - origin) @ rotation
         parts = []
         for q in range(4):
             s = slice(q * n // 4, (q + 1) * n // 4)

@@ -13,19 +13,14 @@ import yaml
 from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 from torch.utils.data import DataLoader
 
-from vfdata.datasets import (
-    ForceClipDataset,
-    ForceDataModule,
-    clip_starts,
-    collate_clips,
-    load_manifest,
-    segments,
-    velocities,
-)
-from vfdata.errors import InputError
-from vfdata.processing import tracks_cloud
+from vfdata.clips.datamodule import ForceDataModule
+from vfdata.clips.dataset import ForceClipDataset, collate_clips
+from vfdata.clips.spec import ClipSpec
+from vfdata.clips.tokens import clip_starts, segments, velocities
+from vfdata.errors import InputError, VisionForceError
+from vfdata.manifest import load_manifest
 from vfdata.recording import McapWriter, layout
-from vfdata.recording.messages import WrenchStamped
+from vfdata.recording.messages import PointCloud2, WrenchStamped
 
 PERIOD = 33_333_333  # ns, 30 frames/s
 T0 = 1_700_000_000_000_000_000
@@ -44,6 +39,19 @@ def points_at(t_s: np.ndarray, n: int = 20) -> np.ndarray:
     """(F, n, 3) object-frame mm: a grid at heights 0..n-1 moving along x at 6 mm/s."""
     base = np.stack([np.zeros(n), np.linspace(-5, 5, n), np.arange(n, dtype=float)], axis=1)
     return base[None] + np.array([6.0, 0.0, 0.0])[None, None] * t_s[:, None, None]
+
+
+def tracks_cloud(points_mm: np.ndarray, visible: np.ndarray, stamp_ns: int) -> PointCloud2:
+    """A /tracking/points message as files before derived_version 2 hold it (object frame, mm)."""
+    array = np.zeros(len(points_mm), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("visible", "u1")])
+    for k, axis in enumerate("xyz"):
+        array[axis] = points_mm[:, k]
+    array["visible"] = visible
+    return PointCloud2(stamp_ns, layout.OBJECT_FRAME, array)
+
+
+def clips(entries, cache_dir=None, **spec) -> ForceClipDataset:
+    return ForceClipDataset(entries, ClipSpec(**spec), cache_dir, progress=False)
 
 
 def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True, hidden: tuple = ()) -> None:
@@ -116,8 +124,8 @@ def test_velocities_central_one_sided_at_ends_and_gaps():
 
 def test_clips_force_and_features(dataset_root):
     root, manifest = dataset_root
-    _, entries = load_manifest(manifest)
-    ds = ForceClipDataset(entries[:1], progress=False)
+    entries = list(load_manifest(manifest).entries)
+    ds = clips(entries[:1])
     assert len(ds) == 4  # two gap-free runs of 20 frames: starts 0, 4 and 20, 24
     item = ds[2]
     assert item["tokens"].shape == (16, 20, 6) and item["valid"].shape == (16, 20)
@@ -141,9 +149,9 @@ def test_canonical_side_mirrors_a_recording_seen_from_its_other_flank(tmp_path):
     write_recording(tmp_path, "pos", times, hidden=tuple((0, i) for i in range(10)))
     manifest = write_manifest(tmp_path, [{"id": "neg", "orientation_deg": 180, "split": "test"},
                                          {"id": "pos", "orientation_deg": 0, "split": "test"}])
-    _, entries = load_manifest(manifest)
-    plain = ForceClipDataset(entries, progress=False)
-    mirrored = ForceClipDataset(entries, progress=False, canonical_side=True)
+    entries = list(load_manifest(manifest).entries)
+    plain = clips(entries)
+    mirrored = clips(entries, canonical_side=True)
     flip = torch.tensor([1.0, -1.0, 1.0, 1.0, -1.0, 1.0])
     neg, pos = 0, 2  # first clips of each recording (starts 0 and 4 in each)
     assert float(mirrored[neg]["side"]) == -1.0 and float(plain[neg]["side"]) == 1.0
@@ -151,61 +159,66 @@ def test_canonical_side_mirrors_a_recording_seen_from_its_other_flank(tmp_path):
     torch.testing.assert_close(mirrored[neg]["force"], plain[neg]["force"] * flip[:3])
     assert float(mirrored[pos]["side"]) == 1.0
     torch.testing.assert_close(mirrored[pos]["tokens"], plain[pos]["tokens"])
-    with pytest.raises(ValueError, match="object frame"):
-        ForceClipDataset(entries, frame="camera", canonical_side=True, progress=False)
+    with pytest.raises(VisionForceError, match="object frame"):
+        clips(entries, frame="camera", canonical_side=True)
     for _ in range(2):  # written to the cache, then read from it
-        cached = ForceClipDataset(entries, progress=False, canonical_side=True, cache_dir=tmp_path / "cache")
+        cached = clips(entries, canonical_side=True, cache_dir=tmp_path / "cache")
         assert float(cached[neg]["side"]) == -1.0
         torch.testing.assert_close(cached[neg]["force"], mirrored[neg]["force"])
-    # Test predictions are turned back to the sensor's Fy: a "model" that predicts the (mirrored)
-    # training target exactly gives the sensor's force as both prediction and truth.
-    from vfdata.experiment import test_predictions
+    # Predictions are turned back to the sensor's Fy: a "model" that predicts the (mirrored) training
+    # target exactly gives the sensor's force as both prediction and truth.
+    from types import SimpleNamespace
 
-    class Exact:
-        def eval(self):
-            return self
+    from vfmodels.prediction_writer import PredictionCollector
+    from vfmodels.regressor import ForceRegressor
 
-        def predict_forces(self, batch):
-            return batch["force"]
-
+    collector = PredictionCollector()
+    trainer = SimpleNamespace(world_size=1, is_global_zero=True)
     loader = torch.utils.data.DataLoader(mirrored, batch_size=4, collate_fn=collate_clips)
-    predictions, _ = test_predictions(Exact(), loader)
+    for batch in loader:
+        sensor = ForceRegressor.unmirror(batch["force"], batch)
+        collector.write_on_batch_end(trainer, None, {"force_n": sensor, "true_n": sensor,
+                                                     "recording": batch["recording"],
+                                                     "frame_time_ns": batch["frame_time_ns"],
+                                                     "orientation_deg": batch["orientation_deg"]}, None, batch, 0)
+    collector.on_predict_end(trainer, None)
+    predictions = collector.frames
     assert float(mirrored[neg]["force"][0, 1]) == -2.0  # the fixture's sensor Fy is 2 N throughout
-    np.testing.assert_allclose(predictions["true"], predictions["pred"])
+    assert len(predictions["true"]) == 40  # every frame of both recordings once
     np.testing.assert_allclose(predictions["true"][:, 1], 2.0)
 
 
 def test_hidden_point_is_invalid_with_its_velocity_neighbours(dataset_root):
     _, manifest = dataset_root
-    _, entries = load_manifest(manifest)
-    item = ForceClipDataset(entries[:1], progress=False)[0]
+    entries = list(load_manifest(manifest).entries)
+    item = clips(entries[:1])[0]
     valid = item["valid"].numpy()
     assert not valid[5, 3] and not valid[4, 3] and not valid[6, 3]  # hidden at 5; 4 and 6 difference it
     assert valid[3, 3] and valid[7, 3] and valid[5, 2]
     assert (item["tokens"][5, 3] == 0).all()
     # positions alone only lose the hidden sample
-    pos = ForceClipDataset(entries[:1], features="pos", progress=False)[0]
+    pos = clips(entries[:1], features="pos")[0]
     assert pos["tokens"].shape[-1] == 3 and not pos["valid"][5, 3] and pos["valid"][4, 3]
 
 
 def test_camera_frame_and_top_bottom(dataset_root):
     _, manifest = dataset_root
-    _, entries = load_manifest(manifest)
-    obj = ForceClipDataset(entries[:1], features="pos", progress=False)[0]
-    cam = ForceClipDataset(entries[:1], features="pos", frame="camera", progress=False)[0]
+    entries = list(load_manifest(manifest).entries)
+    obj = clips(entries[:1], features="pos")[0]
+    cam = clips(entries[:1], features="pos", frame="camera")[0]
     ok = obj["valid"].numpy()
     np.testing.assert_allclose(cam["tokens"].numpy()[ok], obj["tokens"].numpy()[ok] @ ROTATION.T + ORIGIN, atol=1e-4)
     assert (cam["tokens"].numpy()[~ok] == 0).all()
-    tb = ForceClipDataset(entries[:1], features="pos", subset="top_bottom_20", progress=False)[0]["tokens"]
+    tb = clips(entries[:1], features="pos", subset="top_bottom_20")[0]["tokens"]
     assert tb.shape == (16, 8, 3)  # 20% of 20 points at each end by z (heights 0..19)
     assert sorted(tb[0, :, 2].tolist()) == [0, 1, 2, 3, 16, 17, 18, 19]
 
 
 def test_disk_cache_skips_decoding(dataset_root):
     root, manifest = dataset_root
-    _, entries = load_manifest(manifest)
+    entries = list(load_manifest(manifest).entries)
     cache = root / "cache"
-    first = ForceClipDataset(entries[:1], cache_dir=cache, progress=False)
+    first = clips(entries[:1], cache_dir=cache)
     assert len(list(cache.glob("a-*.npz"))) == 1
     # Spoil the MCAPs but keep their size and time stamp: only a cache hit can still load them.
     for name in ("a.mcap", "a.processed.mcap"):
@@ -213,16 +226,16 @@ def test_disk_cache_skips_decoding(dataset_root):
         stat = path.stat()
         path.write_bytes(b"\0" * stat.st_size)
         os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
-    second = ForceClipDataset(entries[:1], cache_dir=cache, progress=False)
+    second = clips(entries[:1], cache_dir=cache)
     torch.testing.assert_close(first[3]["tokens"], second[3]["tokens"])
     with pytest.raises(Exception):  # noqa: B017 - without the cache the spoiled file is read
-        ForceClipDataset(entries[:1], progress=False)
+        clips(entries[:1])
 
 
 def test_loader_with_workers(dataset_root):
     _, manifest = dataset_root
-    _, entries = load_manifest(manifest)
-    ds = ForceClipDataset(entries[:1], progress=False)
+    entries = list(load_manifest(manifest).entries)
+    ds = clips(entries[:1])
     batches = list(DataLoader(ds, batch_size=3, num_workers=2, collate_fn=collate_clips))
     assert [len(b["recording"]) for b in batches] == [3, 1]
     assert batches[0]["tokens"].shape == (3, 16, 20, 6) and batches[0]["frame_time_ns"].dtype == torch.int64
@@ -236,7 +249,7 @@ def test_datamodule_splits_and_training_statistics(dataset_root):
     assert len(dm.datasets["train"]) == 4 and len(dm.datasets["val"]) == 3 and len(dm.datasets["test"]) == 2
     train_force = np.concatenate([d.force_n for d in dm.datasets["train"].recordings])
     np.testing.assert_allclose(dm.normalisation["force_mean"].numpy(), train_force.mean(0), rtol=1e-5, atol=1e-6)
-    assert dm.hparams.fps == pytest.approx(30.0, rel=1e-3)
+    assert dm.spec.fps == pytest.approx(30.0, rel=1e-3)
     batch = next(iter(dm.test_dataloader()))
     assert batch["recording"] == ["c", "c"] and batch["orientation_deg"].tolist() == [45.0, 45.0]
 
@@ -248,16 +261,16 @@ def test_manifest_naming_a_missing_recording(tmp_path):
     write_recording(tmp_path, "a", frame_times(20))
     manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "ghost", "split": "val"}])
     dm = ForceDataModule(str(manifest), progress=False)
-    with pytest.raises(InputError, match="ghost.processed.mcap: processed recording 'ghost' not found"):
+    with pytest.raises(InputError, match="ghost.processed.mcap: derived recording not found"):
         dm.setup("fit")
 
 
 def test_recording_without_tracks(tmp_path):
     write_recording(tmp_path, "a", frame_times(20), tracks=False)
     manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}])
-    _, entries = load_manifest(manifest)
-    with pytest.raises(InputError, match="recording 'a' has no tracks"):
-        ForceClipDataset(entries, progress=False)
+    entries = list(load_manifest(manifest).entries)
+    with pytest.raises(InputError, match="no tracks"):
+        clips(entries)
 
 
 def test_bad_manifests(tmp_path):
@@ -266,8 +279,10 @@ def test_bad_manifests(tmp_path):
     bad = write_manifest(tmp_path, [{"id": "a", "split": "holdout"}])
     with pytest.raises(InputError, match="needs an id and a split"):
         load_manifest(bad)
-    with pytest.raises(ValueError, match="features"):
-        ForceClipDataset([], features="acceleration")
+    with pytest.raises(VisionForceError, match="features"):
+        ClipSpec(features="acceleration")
+    with pytest.raises(TypeError, match="from_manifest"):
+        ForceClipDataset("x.manifest.yaml")
 
 
 def test_ground_truth_source(tmp_path):
@@ -280,13 +295,13 @@ def test_ground_truth_source(tmp_path):
     np.save(raw / "ground_truth" / "force.npy", np.tile([1.0, 2.0, 3.0], (20, 1)).astype(np.float32))
     (raw / "ground_truth" / "object_frame.json").write_text(
         json.dumps({"rotation": ROTATION.tolist(), "origin_mm": ORIGIN.tolist()}))
-    _, entries = load_manifest(write_manifest(tmp_path, [{"id": "g", "split": "train"}]))
-    ds = ForceClipDataset(entries, source="ground_truth", num_points=10, progress=False)
+    entries = list(load_manifest(write_manifest(tmp_path, [{"id": "g", "split": "train"}])).entries)
+    ds = clips(entries, source="ground_truth", num_points=10)
     item = ds[0]
     assert item["tokens"].shape == (16, 10, 6)
     np.testing.assert_allclose(item["tokens"][..., 3].numpy(), 6.0, atol=1e-2)  # object-frame x velocity
     np.testing.assert_allclose(item["force"].numpy(), np.tile([1.0, 2.0, 3.0], (16, 1)))
-    cloud = ForceClipDataset(entries, source="ground_truth", input="cloud", cloud_points=50, progress=False)[0]
+    cloud = clips(entries, source="ground_truth", input="cloud", cloud_points=50)[0]
     assert cloud["tokens"].shape == (16, 50, 3) and cloud["valid"].all()
 
 
@@ -297,7 +312,7 @@ def test_rgb_clips_need_only_the_recording(tmp_path):
 
     convert_raw_folder(make_raw(tmp_path / "raw", n=20), tmp_path / "a.mcap", options=ConvertOptions(progress=False))
     manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}])  # no a.processed.mcap
-    _, entries = load_manifest(manifest)
-    clips = ForceClipDataset(entries, input="rgb", image_size=32, clip_frames=8, progress=False)
-    clip = clips[0]
+    entries = list(load_manifest(manifest).entries)
+    rgb = clips(entries, input="rgb", image_size=32, clip_frames=8)
+    clip = rgb[0]
     assert clip["images"].shape == (8, 3, 32, 32) and clip["force"].shape == (8, 3)

@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 import yaml
 
-from vfdata import experiment, reports
+from vfdata.clips.tokens import latest_clip_frames
 from vfdata.errors import InputError, VisionForceError
+from vfdata.manifest import load_manifest
+from vfmodels.experiment import report, runner
+from vfmodels.experiment.prepare import derived_path, prepare
+from vfmodels.experiment.variants import PAPER_VARIANTS
+from vfmodels.reports import tables
 
 
 def write_manifest(folder, recordings=None):
@@ -26,13 +31,14 @@ def write_manifest(folder, recordings=None):
 
 
 def test_read_manifest_resolves_paths_relative_to_the_manifest(tmp_path):
-    data, entries = experiment.read_manifest(write_manifest(tmp_path))
-    assert data["name"] == "toy" and [e.id for e in entries] == ["a", "b", "c"]
+    manifest = load_manifest(write_manifest(tmp_path))
+    entries = manifest.entries
+    assert manifest.name == "toy" and [e.id for e in entries] == ["a", "b", "c"]
     assert entries[0].raw == (tmp_path / "data" / "a").resolve()
     assert entries[0].mcap == (tmp_path / "data" / "a.mcap").resolve()
     assert entries[2].mcap == (tmp_path / "data" / "elsewhere" / "c.mcap").resolve()
-    assert entries[0].processed("geometry").name == "a.processed.mcap"
-    assert entries[0].processed("klt").name == "a.klt.mcap"
+    assert derived_path(entries[0], "geometry").name == "a.processed.mcap"
+    assert derived_path(entries[0], "klt").name == "a.klt.mcap"
     assert entries[2].orientation_deg == 90.0
 
 
@@ -45,47 +51,42 @@ def test_bad_manifests_are_clear_errors(tmp_path, content, problem):
     path = tmp_path / "m.yaml"
     path.write_text(content)
     with pytest.raises(InputError, match=problem):
-        experiment.read_manifest(path)
+        load_manifest(path)
     with pytest.raises(InputError, match="not found"):
-        experiment.read_manifest(tmp_path / "missing.yaml")
+        load_manifest(tmp_path / "missing.yaml")
 
 
 def test_tracker_manifest_points_at_the_tracker_files(tmp_path):
-    data, entries = experiment.read_manifest(write_manifest(tmp_path))
-    path = experiment.tracker_manifest(data, entries, "klt", tmp_path / "out" / "klt.manifest.yaml")
+    manifest = load_manifest(write_manifest(tmp_path))
+    path = runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "klt.manifest.yaml")
     copy = yaml.safe_load(path.read_text())
     assert copy["name"] == "toy-klt"
-    assert [r["processed"] for r in copy["recordings"]] == [str(e.processed("klt")) for e in entries]
+    assert [r["processed"] for r in copy["recordings"]] == [str(derived_path(e, "klt")) for e in manifest.entries]
     assert [r["split"] for r in copy["recordings"]] == ["train", "val", "test"]
     # Re-read through the same reader: absolute paths survive the move.
-    _, again = experiment.read_manifest(path)
-    assert [e.mcap for e in again] == [e.mcap for e in entries]
+    again = load_manifest(path)
+    assert [e.mcap for e in again] == [e.mcap for e in manifest.entries]
 
 
 def test_missing_recording_names_the_fix(tmp_path):
-    _, entries = experiment.read_manifest(write_manifest(tmp_path))
+    entries = list(load_manifest(write_manifest(tmp_path)).entries)
     with pytest.raises(InputError, match="vfdata synth"):
-        experiment.prepare(entries, ["geometry"], experiment.ExperimentOptions(progress=False))
+        prepare(entries, ["geometry"], progress=False)
 
 
 def test_unknown_variant_is_an_error():
     with pytest.raises(VisionForceError, match="unknown variant"):
-        experiment.ExperimentOptions(variants=["proposed", "nope"]).chosen()
-    assert [v.name for v in experiment.ExperimentOptions().chosen()] == list(experiment.VARIANTS)
-    assert {v.tracker for v in experiment.VARIANTS.values()} == {"geometry", "klt"}
+        runner.ExperimentOptions(variants=["proposed", "nope"]).chosen()
+    assert {v.tracker for v in PAPER_VARIANTS.values()} == {"geometry", "klt"}
 
 
-def test_clip_frames_keeps_each_frame_once_from_its_latest_clip_position():
+def test_latest_clip_frames_keeps_each_frame_once_from_its_latest_clip_position():
     # Two clips of 4 frames with stride 2 on one recording: frames 2 and 3 appear twice.
     times = np.array([0, 1, 2, 3, 2, 3, 4, 5])
-    parts = [dict(recording=np.array(["r"] * 8, dtype=object), orientation_deg=np.full(8, 90.0),
-                  frame_time_ns=times, position=np.array([0, 1, 2, 3, 0, 1, 2, 3]),
-                  pred=np.arange(8, dtype=float)[:, None].repeat(3, 1), true=np.zeros((8, 3)))]
-    frames = experiment.clip_frames(parts)
-    np.testing.assert_array_equal(frames["frame_time_ns"], [0, 1, 2, 3, 4, 5])
+    keep = latest_clip_frames(np.array(["r"] * 8), times, np.array([0, 1, 2, 3, 0, 1, 2, 3]))
+    np.testing.assert_array_equal(times[keep], [0, 1, 2, 3, 4, 5])
     # Frames 2 and 3 come from the first clip (positions 2, 3 > 0, 1).
-    np.testing.assert_array_equal(frames["pred"][:, 0], [0, 1, 2, 3, 6, 7])
-    assert frames["recording"].dtype.kind == "U" and "position" not in frames
+    np.testing.assert_array_equal(keep, [0, 1, 2, 3, 6, 7])
 
 
 def _fake_predictions(noise: float, seed: int) -> dict:
@@ -108,27 +109,17 @@ def _fake_runs(out, noise_by_variant: dict[str, float], seeds: int = 2):
             (run / "metrics.json").write_text(json.dumps({"force_fps": 5000.0}))
 
 
-def test_pending_runs_skips_finished_ones(tmp_path):
-    _fake_runs(tmp_path, {"proposed": 0.1}, seeds=2)
-    grid = [(experiment.VARIANTS[n], s) for n in ("proposed", "klt") for s in range(3)]
-    pending = experiment.pending_runs(tmp_path, grid)
-    assert [(v.name, s) for v, s in pending] == [("proposed", 2), ("klt", 0), ("klt", 1), ("klt", 2)]
-    # A run folder without metrics.json (interrupted) is still pending.
-    (tmp_path / "runs" / "proposed" / "seed1" / "metrics.json").unlink()
-    assert ("proposed", 1) in [(v.name, s) for v, s in experiment.pending_runs(tmp_path, grid)]
-
-
 def test_reports_from_run_folders(tmp_path):
     manifest = write_manifest(tmp_path)
     out = tmp_path / "results"
     _fake_runs(out, {"proposed": 0.05, "camera_frame": 0.2, "klt": 0.08, "rgb": 0.3})
-    paths = experiment.write_reports(out, manifest)
+    paths = report.write_reports(out, manifest)
     table1 = paths["table1.md"].read_text()
     table2 = paths["table2.md"].read_text()
     assert "Proposed" in table1 and "RGB only" in table1 and "Camera frame" not in table1
     assert "Camera frame" in table2 and "KLT" in table2 and "RGB" not in table2
-    runs = experiment.load_runs(out)
-    expected = reports.aggregate_seeds(runs["proposed"])["value"]["rmse"]
+    runs = report.load_runs(out)
+    expected = tables.aggregate_seeds(runs["proposed"])["value"]["rmse"]
     assert f"{expected:.3f}" in table1
     for key in ("table1.csv", "table1.tex", "table2.csv", "table2.tex", "fig7"):
         assert paths[key].is_file() and paths[key].stat().st_size > 0
@@ -136,7 +127,7 @@ def test_reports_from_run_folders(tmp_path):
     assert claims["object_frame_halves_rmse"]["holds"] is True  # 0.05 vs 0.2 noise
     assert claims["geometry_beats_klt"]["holds"] is True and claims["beats_rgb"]["holds"] is True
     assert "beats_position_only" not in claims
-    text = experiment.summary_text(out, paths)
+    text = report.summary_text(paths)
     assert "Table I" in text and "fig7" in text and "object frame lowers the average RMSE" in text
 
 
@@ -144,7 +135,7 @@ def test_claims_flag_a_failed_claim():
     agg = {name: {"value": {"rmse": rmse}} for name, rmse in
            (("proposed", 0.8), ("camera_frame", 1.0), ("velocity_only", 0.7), ("canonical_side", 0.45),
             ("klt", 0.6), ("geometry_plus", 0.5))}
-    result = experiment.claims(agg)
+    result = report.claims(agg)
     assert result["object_frame_halves_rmse"]["holds"] is False
     assert result["object_frame_halves_rmse"]["reduction"] == pytest.approx(0.2)
     assert result["beats_velocity_only"]["holds"] is False
@@ -161,23 +152,23 @@ def test_experiment_end_to_end_on_a_tiny_simulated_dataset(tmp_path):
     from vfdata.sim import synthesize
 
     manifest = synthesize("mini", tmp_path / "data", seed=0, workers=2, progress=False, frames=40)
-    options = experiment.ExperimentOptions(seeds=1, epochs=1, variants=["proposed", "klt"], workers=2,
+    options = runner.ExperimentOptions(seeds=1, epochs=1, variants=["proposed", "klt"], workers=2,
                                            progress=False)
-    result = experiment.run_experiment(manifest, tmp_path / "results", options)
+    result = runner.run_experiment(manifest, tmp_path / "results", options)
     assert (tmp_path / "data" / "mini_002.klt.mcap").is_file()
     for variant in ("proposed", "klt"):
         run = tmp_path / "results" / "runs" / variant / "seed0"
         metrics = json.loads((run / "metrics.json").read_text())
         predictions = dict(np.load(run / "predictions.npz"))
-        reports.check_predictions(predictions)
+        tables.check_predictions(predictions)
         assert set(predictions["recording"]) == {"mini_002"} and metrics["test_frames"] == len(predictions["true"])
         assert len(np.unique(predictions["frame_time_ns"])) == len(predictions["frame_time_ns"])
-        assert metrics["pooled"]["rmse"] == pytest.approx(reports.run_metrics(predictions)["pooled"]["rmse"])
+        assert metrics["pooled"]["rmse"] == pytest.approx(tables.run_metrics(predictions)["pooled"]["rmse"])
     for key in ("table1.md", "table2.md", "table3.md", "timing.md", "fig5", "fig6", "fig7", "training",
                 "first_frames"):
         assert result.reports[key].is_file(), key
     assert "KLT" in result.reports["table3.md"].read_text()
     stamp = (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns
-    again = experiment.run_experiment(manifest, tmp_path / "results", options)
+    again = runner.run_experiment(manifest, tmp_path / "results", options)
     assert (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns == stamp
     assert again.seconds["train_test"] < 5.0

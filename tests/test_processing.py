@@ -13,8 +13,9 @@ import pytest
 
 from vfdata.cli import main
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
-from vfdata.processing import ProcessOptions, decode_depth, process_recording
+from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording, layout
+from vfdata.recording.derived import DERIVED_VERSION, DerivedRecording
 from vfdata.recording.inspect import check_file
 from vfdata.sim import synthesize
 
@@ -49,20 +50,19 @@ def test_derived_file_layout_and_provenance(recording, processed):
 
 
 def test_mask_depth_and_object_frame_match_ground_truth(recording, processed):
-    rec = Recording.open(processed)
+    derived = DerivedRecording.open(processed)
+    assert derived.num_frames == FRAMES and derived.meta.version == DERIVED_VERSION
     gt = Path(Recording.open(recording).metadata.source) / "ground_truth"
     for i in (0, FRAMES - 1):
-        _, mask_msg = next(rec.messages(layout.TISSUE_MASK, i, i + 1))
-        mask = cv2.imdecode(np.frombuffer(mask_msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 0
+        mask = derived.mask(i)
         true_mask = cv2.imread(str(gt / "mask" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
         assert (mask & true_mask).sum() / (mask | true_mask).sum() > 0.85
-        depth = decode_depth(rec.message(layout.TISSUE_DEPTH, i))
+        depth = derived.depth_mm(i)
         true_depth = cv2.imread(str(gt / "depth" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED) * 0.1
         inside = true_mask & np.isfinite(depth)
         assert np.median(np.abs(depth[inside] - true_depth[inside]) / true_depth[inside]) < 0.03
-    frame = json.loads(rec.metadata_records[layout.DERIVED_METADATA]["object_frame"])
     truth = json.loads((gt / "object_frame.json").read_text())
-    z, true_z = np.asarray(frame["rotation"])[:, 2], np.asarray(truth["rotation"])[:, 2]
+    z, true_z = derived.object_frame.z_axis, np.asarray(truth["rotation"])[:, 2]
     assert np.degrees(np.arccos(np.clip(z @ true_z, -1, 1))) < 5.0
 
 
@@ -71,14 +71,22 @@ def test_tracks_are_256_points_in_the_object_frame(processed):
     tf = rec.message(layout.TF_STATIC, 0).transforms[0]
     assert (tf.frame_id, tf.child_frame_id) == (layout.LEFT_FRAME, layout.OBJECT_FRAME)
     first = rec.message(layout.TRACKING_POINTS, 0)
-    last = rec.message(layout.TRACKING_POINTS, FRAMES - 1)
     assert first.frame_id == layout.OBJECT_FRAME and len(first.points) == 256
     assert set(first.points.dtype.names) == {"x", "y", "z", "visible"}
-    z = first.points["z"]
+    assert 0.005 < np.ptp(first.points["z"]) < 0.2  # REP 103: metres (the mini tissue is ~60 mm long)
+    tracks = DerivedRecording.open(processed).tracks()
+    z = tracks.points_object_mm[0, :, 2]
     assert np.percentile(z, 2) == pytest.approx(0.0, abs=1.0)  # origin at the 2nd percentile along Z
-    assert first.points["visible"].mean() > 0.9
-    moved = np.linalg.norm(np.stack([last.points[a] - first.points[a] for a in "xyz"], axis=1), axis=1)
+    assert tracks.visible[0].mean() > 0.9
+    moved = np.linalg.norm(tracks.points_object_mm[-1] - tracks.points_object_mm[0], axis=1)
     assert np.isfinite(moved).all() and moved.max() < 30.0
+
+
+def test_depth_is_16uc1_millimetres(processed):
+    """REP 118: 16UC1 depth images are millimetres."""
+    image = Recording.open(processed).message(layout.TISSUE_DEPTH, 0)
+    data = np.frombuffer(image.data, "<u2")
+    assert image.encoding == "16UC1" and 40 < np.median(data[data > 0]) < 300  # the mini tissue at ~90 mm
 
 
 def test_first_frame_preview_beside_the_derived_file(recording, processed):
@@ -87,13 +95,12 @@ def test_first_frame_preview_beside_the_derived_file(recording, processed):
     preview = cv2.imread(str(processed.with_name("mini_002.processed.png")))
     left = Recording.open(recording).rectified_frame(0).left
     assert preview.shape == left.shape
-    _, mask_msg = next(Recording.open(processed).messages(layout.TISSUE_MASK, 0, 1))
-    mask = cv2.imdecode(np.frombuffer(mask_msg.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 0
+    mask = DerivedRecording.open(processed).mask(0)
     mask[:50] = False  # the labels' band
     tint = preview[mask].astype(float) - left[mask].astype(float)
     assert tint[:, 1].mean() > 15 and tint[:, 2].mean() < 0  # greener, less red
-    frame = json.loads(Recording.open(processed).metadata_records[layout.DERIVED_METADATA]["object_frame"])
-    rotation, origin = np.asarray(frame["rotation"]), np.asarray(frame["origin"])
+    frame = DerivedRecording.open(processed).object_frame
+    rotation, origin = frame.rotation, frame.origin
     camera = Recording.open(recording).camera
     u, v = camera.project((origin + 0.7 * 20.0 * rotation[:, 2])[None])[0]  # on the Z arrow
     b, g, r = preview[int(round(v)), int(round(u))].astype(int)

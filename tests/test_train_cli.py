@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from clip_fixtures import single_thread  # noqa: E402, F401 - autouse fixture
 
 import train  # noqa: E402
+from vfmodels.train import best_checkpoint  # noqa: E402
 
 SYNTHETIC = [
     "--model.model=vfmodels.SetTransformerLSTM", "--model.model.in_features=6",
@@ -47,7 +48,7 @@ def test_last_checkpoint_follows_every_epoch(tmp_path):
                 "--model.lr=0"])
     checkpoints = tmp_path / "checkpoints"
     assert torch.load(checkpoints / "last.ckpt", weights_only=True)["epoch"] == 2
-    best = train.best_checkpoint(checkpoints)
+    best = best_checkpoint(checkpoints)
     assert best.name.startswith("epoch000") and torch.load(best, weights_only=True)["epoch"] == 0
 
 
@@ -62,13 +63,13 @@ def test_fit_then_test_and_predict_best(tmp_path, capsys):
     state = torch.load(ckpts[0], weights_only=True)
     assert state["force_model"]["class_path"] == "vfmodels.set_transformer.SetTransformerLSTM"
 
-    best = train.best_checkpoint(tmp_path / "run" / "checkpoints")
+    best = best_checkpoint(tmp_path / "run" / "checkpoints")
     assert best in ckpts
     train.main(["test", *run, "--ckpt_path=best"])
     metrics = (tmp_path / "run" / "csv" / "version_1" / "metrics.csv").read_text()
     assert "test/rmse_fz" in metrics and "test/mean/rmse" in metrics
     train.main(["predict", *run, "--ckpt_path=best", f"--prediction_writer.output_dir={tmp_path / 'pred'}"])
-    from vfdata.predict import read_force_estimate
+    from vfdata.recording.derived import read_force_estimate
 
     times, force = read_force_estimate(tmp_path / "pred" / "synthetic_000.force.mcap")
     assert len(times) == 16 and force.shape == (16, 3) and np.isfinite(force).all()
@@ -94,7 +95,7 @@ def test_every_config_parses(capsys):
         with pytest.raises(SystemExit) as exit_info:
             train.main(["fit", f"--config={config}", "--print_config"])
         assert exit_info.value.code == 0, config
-        assert "class_path: vfdata.datasets.ForceDataModule" in capsys.readouterr().out
+        assert "class_path: vfdata.clips.datamodule.ForceDataModule" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("config", [
@@ -120,8 +121,9 @@ def test_fast_dev_run_on_the_mini_preset(tmp_path):
     from vfdata.sim import synthesize
 
     manifest = synthesize("mini", tmp_path / "mini", frames=20, progress=False)
-    _, entries = __import__("vfdata.datasets", fromlist=["load_manifest"]).load_manifest(manifest)
-    for e in entries:
+    from vfdata.manifest import load_manifest
+
+    for e in load_manifest(manifest):
         assert vfdata_main(["convert", str(e.raw), str(e.mcap), "--quiet"]) == 0
         assert vfdata_main(["process", str(e.mcap), "--depth", "recorded", "--tracker", "groundtruth", "--quiet"]) == 0
     train.main(["fit", f"--config={ROOT / 'configs' / 'proposed.yaml'}", f"--data.manifest={manifest}",

@@ -1,15 +1,19 @@
-"""The `vfdata` command line. Each subcommand lives in `vfdata/commands/<name>.py` and defines
-`register(subparsers)`; errors derived from VisionForceError become one line and exit code 1."""
+"""The `vfdata` command line. Each subcommand is a module that defines `register(subparsers)`: the data
+commands live in `vfdata/commands/<name>.py`; commands of packages built on vfdata (the model commands
+of `vfmodels`: experiment, predict, quickstart) are found through the `visionforce.commands` entry
+points, so vfdata never imports them. Errors derived from VisionForceError become one line and exit
+code 1."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+from importlib.metadata import entry_points
 
 from vfdata.errors import VisionForceError
 
-# Order is the order shown in --help.
+# Order is the order shown in --help; the entry-point commands follow.
 COMMANDS = [
     "convert",
     "info",
@@ -17,10 +21,8 @@ COMMANDS = [
     "process",
     "inspect-bag",
     "synth",
-    "experiment",
-    "predict",
-    "quickstart",
 ]
+ENTRY_POINT_GROUP = "visionforce.commands"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,8 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
-        module = importlib.import_module(f"vfdata.commands.{name.replace('-', '_')}")
-        module.register(sub)
+        importlib.import_module(f"vfdata.commands.{name.replace('-', '_')}").register(sub)
+    for point in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda p: p.name):
+        point.load().register(sub)
     return parser
 
 

@@ -1,17 +1,14 @@
-"""`ForceEstimateWriter`: the callback behind `train.py predict`. It gathers the per-frame forces of
-every predicted clip and, at the end, writes one MCAP per recording with `/force/estimate`
-(geometry_msgs/msg/WrenchStamped, N, frame `tissue_object`, torque NaN: not estimated), beside the
-recording or in `output_dir`, as `<id>.force.mcap` (vfdata.predict.write_force_mcap, the same file
-`vfdata predict` writes).
+"""`trainer.predict` callbacks: `PredictionCollector` gathers the per-frame forces of every predicted
+clip (each frame once, from the clip in which it had the most history, as a causal online estimator
+gives it), and `ForceEstimateWriter` (behind `train.py predict`) writes them as one `/force/estimate`
+MCAP per recording (`vfdata.recording.derived.write_force_estimate`, the file `vfdata predict` writes).
 
-Clips overlap, so a frame is predicted several times; each frame is written once, from the clip in
-which it had the most history (the latest position), as an online causal estimator would give it.
-The datamodule must say where each recording lives: `entries` (vfdata.datasets.ManifestEntry list).
+The writer needs to know where each recording lives: the datamodule's `entries` (manifest entries).
+Like every `vfdata` command it refuses to replace an existing file unless `overwrite`.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -20,70 +17,105 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities import rank_zero_info
 
-from vfdata.errors import InputError
+from vfdata.clips.tokens import latest_clip_frames
+from vfdata.errors import InputError, OutputExistsError
+from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recording.derived import DerivedRecording, write_force_estimate
+
+FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true")
 
 
-class ForceEstimateWriter(BasePredictionWriter):
-    def __init__(self, output_dir: str | None = None, overwrite: bool = True):
+class PredictionCollector(BasePredictionWriter):
+    """Per-frame predictions of a `trainer.predict` run, available as `frames` after it: recording
+    (M,) str, orientation_deg (M,), frame_time_ns (M,) int64, pred (M, 3) N, true (M, 3) N (NaN where
+    the batches had no measured force), sorted by recording and time."""
+
+    def __init__(self) -> None:
         super().__init__(write_interval="batch")
-        self.output_dir = Path(output_dir) if output_dir else None
-        self.overwrite = overwrite
-        self.written: list[Path] = []
-        self._frames: dict[str, dict[int, tuple[int, np.ndarray]]] = {}
+        self._parts: list[dict[str, np.ndarray]] = []
+        self.frames: dict[str, np.ndarray] | None = None
 
     def on_predict_start(self, trainer, pl_module) -> None:
-        self._frames = {}
-        self.written = []
+        self._parts, self.frames = [], None
 
     def write_on_batch_end(self, trainer, pl_module, prediction: dict[str, Any], batch_indices, batch,
                            batch_idx: int, dataloader_idx: int = 0) -> None:
-        if prediction.get("frame_time_ns") is None or not prediction.get("recording"):
+        if prediction.get("frame_time_ns") is None:
             return
-        force = prediction["force_n"].numpy()
-        times = prediction["frame_time_ns"].numpy()
-        for b, rid in enumerate(prediction["recording"]):
-            frames = self._frames.setdefault(rid, {})
-            for position, (t, f) in enumerate(zip(times[b], force[b], strict=True)):
-                known = frames.get(int(t))
-                if known is None or position > known[0]:
-                    frames[int(t)] = (position, f)
+        pred = prediction["force_n"].numpy()
+        b, t = pred.shape[:2]
+        true = prediction["true_n"].numpy() if "true_n" in prediction else np.full_like(pred, np.nan)
+        self._parts.append({
+            "recording": np.repeat(np.asarray(prediction["recording"], dtype=object), t).astype(str),
+            "orientation_deg": np.repeat(prediction["orientation_deg"].numpy().astype(np.float64), t),
+            "frame_time_ns": prediction["frame_time_ns"].numpy().reshape(-1).astype(np.int64),
+            "position": np.tile(np.arange(t), b),
+            "pred": pred.reshape(-1, 3).astype(np.float64),
+            "true": true.reshape(-1, 3).astype(np.float64),
+        })
 
     def on_predict_end(self, trainer, pl_module) -> None:
-        from vfdata.predict import write_force_mcap
-        from vfdata.recording import Recording, layout
-
-        if trainer.world_size > 1:  # every rank predicted a share of the clips: merge on rank 0
+        parts = self._parts
+        if trainer.world_size > 1:  # every rank predicted a share of the clips: merge them
             gathered: list = [None] * trainer.world_size
-            torch.distributed.all_gather_object(gathered, self._frames)
-            merged: dict[str, dict[int, tuple[int, np.ndarray]]] = {}
-            for part in gathered:
-                for rid, frames in part.items():
-                    into = merged.setdefault(rid, {})
-                    for t, (position, f) in frames.items():
-                        if t not in into or position > into[t][0]:
-                            into[t] = (position, f)
-            self._frames = merged
-        if not trainer.is_global_zero:
-            return
+            torch.distributed.all_gather_object(gathered, parts)
+            parts = [p for rank in gathered for p in rank]
+        if not parts:
+            self.frames = {k: np.zeros((0, 3) if k in ("pred", "true") else 0) for k in FIELDS if k != "position"}
+        else:
+            frames = {k: np.concatenate([p[k] for p in parts]) for k in FIELDS}
+            keep = latest_clip_frames(frames["recording"], frames["frame_time_ns"], frames["position"])
+            self.frames = {k: v[keep] for k, v in frames.items() if k != "position"}
+        if trainer.is_global_zero:
+            self.publish(trainer, pl_module)
+
+    def publish(self, trainer, pl_module) -> None:
+        """What to do with the frames once gathered (rank 0): nothing here; see ForceEstimateWriter."""
+
+
+class ForceEstimateWriter(PredictionCollector):
+    """Writes `<id>.force.mcap` per predicted recording, beside its recording or in `output_dir`.
+
+    Args:
+        output_dir: folder of the force files (default: beside each recording).
+        overwrite: replace existing force files (default: refuse, as every vfdata command).
+    """
+
+    def __init__(self, output_dir: str | None = None, overwrite: bool = False):
+        super().__init__()
+        self.output_dir = Path(output_dir) if output_dir else None
+        self.overwrite = overwrite
+        self.written: list[Path] = []
+
+    def _targets(self, trainer, recordings: list[str]) -> dict[str, tuple[Path, Any]]:
         entries = {e.id: e for e in getattr(trainer.datamodule, "entries", [])}
-        model = type(pl_module.model).__name__
-        for rid, frames in sorted(self._frames.items()):
+        targets = {}
+        for rid in recordings:
             entry = entries.get(rid)
             if entry is None and self.output_dir is None:
                 raise InputError(Path(rid), "recording not in the datamodule's manifest: pass output_dir")
-            rotation, origin = np.eye(3), np.zeros(3)
+            path = (self.output_dir or entry.mcap.parent) / f"{rid}.force.mcap"
+            if path.exists() and not self.overwrite:
+                raise OutputExistsError(path)
+            targets[rid] = (path, entry)
+        return targets
+
+    def publish(self, trainer, pl_module) -> None:
+        self.written = []
+        frames = self.frames
+        recordings = sorted(set(frames["recording"].tolist()))
+        targets = self._targets(trainer, recordings)  # every refusal before anything is written
+        model = type(pl_module.model).__name__
+        for rid in recordings:
+            path, entry = targets[rid]
+            rows = frames["recording"] == rid
+            frame = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan"))
             if entry is not None and entry.processed.is_file():
-                with Recording.open(entry.processed) as rec:
-                    meta = rec.metadata_records.get(layout.DERIVED_METADATA, {})
-                if "object_frame" in meta:
-                    frame = json.loads(meta["object_frame"])
-                    rotation, origin = np.asarray(frame["rotation"]), np.asarray(frame["origin"])
-            folder = self.output_dir or entry.mcap.parent
-            folder.mkdir(parents=True, exist_ok=True)
-            times = np.array(sorted(frames), dtype=np.int64)
-            force = np.stack([frames[int(t)][1] for t in times]).astype(np.float64)
-            path = write_force_mcap(folder / f"{rid}.force.mcap", times, force, rotation, origin,
-                                    {"stage": "train.py predict", "model": model, "recording": rid,
-                                     "source": str(entry.processed if entry else "")}, overwrite=self.overwrite)
+                with DerivedRecording.open(entry.processed) as derived:
+                    frame = derived.object_frame
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
+                                 {"stage": "train.py predict", "model": model, "recording": rid,
+                                  "source": str(entry.processed if entry else "")}, overwrite=self.overwrite)
             self.written.append(path)
-            rank_zero_info(f"wrote {path} ({len(times)} frames)")
+            rank_zero_info(f"wrote {path} ({int(rows.sum())} frames)")

@@ -13,7 +13,6 @@ Models: an `nn.Module` with `forward(x, valid) -> (B, T, 3)` in normalised units
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +23,11 @@ import torch.nn.functional as F
 from lightning.pytorch.utilities import rank_zero_info
 from torch import nn
 
+from vfdata.clips.tokens import latest_clip_frames
 from vfdata.errors import InputError
+from vfdata.weights import load_weights
 from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
+from vfmodels.registry import build_model, class_path
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
 COMPILED_PREFIX = "_compiled."
@@ -133,13 +135,19 @@ class ForceRegressor(L.LightningModule):
         self._evaluate(batch, "test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
-        """{"force_n": (B, T, 3) in N, "recording": [...], "frame_time_ns": (B, T)} (CPU tensors).
-        A clip of a mirrored recording (batch "side" -1) has its Fy turned back to the sensor's."""
-        return {
+        """{"force_n": (B, T, 3) N, "recording": [...], "frame_time_ns": (B, T), "orientation_deg":
+        (B,), and "true_n" (B, T, 3) N when the batch has the measured force} (CPU tensors). A clip of
+        a mirrored recording (batch "side" -1) has its Fy turned back to the sensor's."""
+        b = len(batch[self.model.input_key])
+        out = {
             "force_n": self.unmirror(self.predict_forces(batch), batch),
-            "recording": list(batch.get("recording", [])),
+            "recording": list(batch.get("recording", [""] * b)),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
+            "orientation_deg": torch.as_tensor(batch.get("orientation_deg", torch.zeros(b))).float().cpu(),
         }
+        if "force" in batch:
+            out["true_n"] = self.unmirror(batch["force"], batch)
+        return out
 
     @staticmethod
     def unmirror(force_n: torch.Tensor, batch: dict[str, Any]) -> torch.Tensor:
@@ -184,14 +192,9 @@ class ForceRegressor(L.LightningModule):
         if not parts:
             return None
         frames = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        # Clips overlap, so a frame may be predicted several times. Keep each frame once, from the
-        # clip where it had the most history (the latest position), as a causal online estimator would.
-        if (frames["frame_time_ns"] >= 0).all():
-            order = np.lexsort((-frames["position"], frames["frame_time_ns"], frames["recording"].astype(str)))
-            key = np.stack([frames["recording"].astype(str)[order], frames["frame_time_ns"][order].astype(str)])
-            first = np.ones(len(order), dtype=bool)
-            first[1:] = (key[:, 1:] != key[:, :-1]).any(axis=0)
-            frames = {k: v[order[first]] for k, v in frames.items()}
+        if (frames["frame_time_ns"] >= 0).all():  # each frame once, from the clip it ends latest in
+            keep = latest_clip_frames(frames["recording"], frames["frame_time_ns"], frames["position"])
+            frames = {k: v[keep] for k, v in frames.items()}
         known = np.isfinite(frames["true_n"]).all(axis=1)
         return {k: v[known] for k, v in frames.items()}
 
@@ -227,30 +230,43 @@ class ForceRegressor(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # Enough to rebuild the model without the training config (see `load`); plain values only,
         # so the checkpoint loads with torch.load(weights_only=True).
-        cls = type(self.model)
         checkpoint["force_model"] = {
-            "class_path": f"{cls.__module__}.{cls.__qualname__}",
+            "class_path": class_path(self.model),
             "init_args": dict(getattr(self.model, "config", {})),
             "initialisation": getattr(self.model, "initialisation", "random"),
         }
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
-        """A trained regressor from a checkpoint file alone (weights_only load), in eval mode.
-        Pretrained-weight files named in the model config are not needed: the checkpoint has the weights."""
+        """A trained regressor from a checkpoint file alone, in eval mode. The file is read as data
+        (`weights_only=True`) and may name only a model of `vfmodels.registry`. Pretrained-weight
+        files named in the model config are not needed: the checkpoint has the weights."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "checkpoint not found")
-        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+        checkpoint = read_checkpoint(path)
         spec = checkpoint.get("force_model")
-        if spec is None:
+        if not isinstance(spec, dict) or not isinstance(spec.get("init_args", {}), dict):
             raise InputError(path, "not a ForceRegressor checkpoint (no 'force_model' entry)")
-        module_name, _, class_name = spec["class_path"].rpartition(".")
-        init_args = dict(spec["init_args"])
+        init_args = dict(spec.get("init_args", {}))
         if "weights_path" in init_args:
             init_args["weights_path"] = None
-        model = getattr(importlib.import_module(module_name), class_name)(**init_args)
+        model = build_model(path, spec.get("class_path", ""), init_args)
         hparams = {k: v for k, v in checkpoint.get("hyper_parameters", {}).items() if k in ("lr", "weight_decay")}
         regressor = cls(model, **hparams)
-        regressor.load_state_dict(checkpoint["state_dict"])
+        try:
+            regressor.load_state_dict(checkpoint["state_dict"])
+        except (KeyError, RuntimeError) as exc:
+            raise InputError(path, f"the checkpoint's weights do not fit its model ({str(exc).splitlines()[0]})") \
+                from None
         return regressor.eval()
+
+
+def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """A checkpoint's contents, read as data only (no code runs: `vfdata.weights.load_weights`); an
+    InputError naming the file when it is missing, damaged or not a checkpoint."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "checkpoint not found")
+    checkpoint = load_weights(path, "checkpoint")
+    if not isinstance(checkpoint, dict):
+        raise InputError(path, "not a checkpoint (its contents are not a dictionary)")
+    return checkpoint

@@ -7,7 +7,11 @@ import json
 from pathlib import Path
 
 from vfdata.errors import VisionForceError
-from vfdata.processing import TRACKERS, ProcessOptions, default_output, preview_path, process_recording
+
+# vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
+# `vfdata --help` starts fast; the registry checks the tracker's name.
+TRACKER_HELP = ("point tracker: geometry (default), geometry+ (also follows the image texture), klt, cotracker "
+                "(needs its weights), groundtruth (the simulator's true points), static, or none (no tracks)")
 
 
 def _options(text: str | None) -> dict:
@@ -41,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segment-options", help="backend options, key=value,... (e.g. config=...,checkpoint=...)")
     p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
                                     "(default: prompt_box in the recording's metadata)")
-    p.add_argument("--tracker", default="geometry", choices=TRACKERS, help="point tracker (default geometry)")
+    p.add_argument("--tracker", default="geometry", help=TRACKER_HELP)
     p.add_argument("--tracker-options", help="tracker options, key=value,...")
     p.add_argument("--points", type=int, default=256, help="tracked points (default 256)")
     p.add_argument("--ground-truth", type=Path, help="simulator ground_truth/ folder (default: beside the raw folder)")
@@ -53,6 +57,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vfdata.processing import ProcessOptions, default_output, preview_path, process_recording
+
     options = ProcessOptions(
         depth=args.depth, depth_options=_options(args.depth_options), segment=args.segment,
         segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,

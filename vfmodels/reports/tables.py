@@ -1,11 +1,11 @@
-"""Tables and plots of an experiment (docs/experiments.md): pure functions from arrays and dicts to
-text and image files. Nothing here reads MCAP or runs a model; `vfdata.experiment` gathers the inputs.
+"""Tables of an experiment (docs/experiments.md): pure functions from arrays and dicts to text.
+Nothing here reads MCAP or runs a model; `vfmodels.experiment` gathers the inputs.
 
 Force tables (the paper's Tables I and II). For every model variant and seed, the test frames give
 RMSE (N), NRMSE and R^2 per component (Fx, Fy, Fz) and their average, pooled over all test frames,
 and the same per test orientation. A table cell is the pooled value averaged over seeds, +- the
-standard deviation across test orientations (also averaged over seeds); the CSV keeps the spread
-across seeds as well.
+standard deviation across test orientations (also averaged over seeds; "n/a" with one orientation);
+the CSV keeps the spread across seeds as well.
 
 Tracking table (Table III): coverage and NNI at force peaks per tracker; with simulator ground truth
 also the 3D tracking error (median / 95th percentile, mm) split along and across the surface normal.
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vfmodels.metrics import COMPONENTS, grouped_force_metrics
+from vfmodels.metrics import grouped_force_metrics
 
 METRICS = (("rmse", "RMSE (N)"), ("nrmse", "NRMSE"), ("r2", "R²"))
 COLUMNS = (("fx", "Fx"), ("fy", "Fy"), ("fz", "Fz"), ("", "Avg"))
@@ -74,6 +74,7 @@ def aggregate_seeds(runs: Sequence[Mapping]) -> dict:
         "orientation_std": dict(zip(keys, spread.mean(axis=0).tolist(), strict=True)),
         "seed_std": dict(zip(keys, pooled.std(axis=0).tolist(), strict=True)),
         "seeds": len(runs),
+        "orientations": max(len(r.get("groups", {})) for r in runs),
         # Runs of one results folder may differ in length (resumed, or re-run with another --epochs);
         # a table must say so, or a 20-epoch ablation reads as a 60-epoch one.
         "training": [r.get("training") for r in runs],  # None for a seed without logs
@@ -123,7 +124,8 @@ def force_table_markdown(table: Mapping[str, Mapping], labels: Mapping[str, str]
             cells = []
             for comp, _ in COLUMNS:
                 key = f"{metric}_{comp}" if comp else metric
-                cells.append(f"{_fmt(agg['value'][key])} ± {_fmt(agg['orientation_std'][key])}")
+                spread = _fmt(agg["orientation_std"][key]) if agg.get("orientations", 2) > 1 else "n/a"
+                cells.append(f"{_fmt(agg['value'][key])} ± {spread}")
             name = labels.get(variant, variant) if i == 0 else ""
             lines.append(f"| {name} | {metric_label} | " + " | ".join(cells) + " |")
     seeds = sorted({agg["seeds"] for agg in table.values()})
@@ -346,184 +348,3 @@ def training_summary(curves: Mapping[str, np.ndarray]) -> dict:
     return {"epochs": len(curves["epoch"]), "best_epoch": best}
 
 
-# ---- plots ---------------------------------------------------------------------------------------
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_force_curves(predictions: Mapping[str, np.ndarray], path: str | Path, fps: float = 30.0,
-                      title: str = "", max_recordings: int | None = None) -> Path:
-    """Fig. 7: measured (solid) and predicted (dashed) Fx, Fy, Fz against time, one column per test
-    orientation (its first recording, or `max_recordings` of them one after another)."""
-    plt = _pyplot()
-    check_predictions(predictions)
-    orientation = np.asarray(predictions["orientation_deg"], dtype=np.float64)
-    groups = np.unique(orientation)
-    fig, axes = plt.subplots(3, len(groups), figsize=(5.0 * len(groups), 6.5), sharex="col", squeeze=False)
-    colours = ("tab:red", "tab:green", "tab:blue")
-    for col, group in enumerate(groups):
-        sel = np.flatnonzero(orientation == group)
-        recordings = list(dict.fromkeys(np.asarray(predictions["recording"])[sel].astype(str)))
-        if max_recordings is not None:
-            recordings = recordings[:max_recordings]
-        offset_s = 0.0
-        for rec in recordings:
-            idx = sel[np.asarray(predictions["recording"])[sel].astype(str) == rec]
-            idx = idx[np.argsort(np.asarray(predictions["frame_time_ns"])[idx])]
-            t_ns = np.asarray(predictions["frame_time_ns"], dtype=np.int64)[idx]
-            t = (t_ns - t_ns[0]) / 1e9 + offset_s
-            for row, comp in enumerate(COMPONENTS):
-                ax = axes[row, col]
-                ax.plot(t, predictions["true"][idx, row], color=colours[row], lw=1.2,
-                        label="measured" if rec == recordings[0] else None)
-                ax.plot(t, predictions["pred"][idx, row], color="black", lw=1.0, ls="--",
-                        label="predicted" if rec == recordings[0] else None)
-                ax.set_ylabel(f"F{comp[1]} (N)")
-            offset_s = t[-1] + 1.0 / fps if len(t) else offset_s
-        axes[0, col].set_title(f"{group:g}° ({len(recordings)} recording{'s' * (len(recordings) > 1)})")
-        axes[-1, col].set_xlabel("time (s)")
-        axes[0, col].legend(loc="upper right", fontsize=8)
-    for ax in axes.ravel():
-        ax.grid(alpha=0.3)
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path)
-
-
-def save_figure(fig, path: str | Path) -> Path:
-    """Lay out, write (PNG, 120 dpi, creating the folder) and close a matplotlib figure."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
-def force_kde(samples: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Gaussian kernel density (Scott's bandwidth) of 1-D `samples` on `grid`; a degenerate sample
-    (fewer than two distinct values) gives a narrow spike of unit area at its value."""
-    from scipy.stats import gaussian_kde
-
-    samples = np.asarray(samples, dtype=np.float64)
-    samples = samples[np.isfinite(samples)]
-    if len(np.unique(samples)) < 2:
-        density = np.zeros_like(grid, dtype=np.float64)
-        if len(samples):
-            step = grid[1] - grid[0] if len(grid) > 1 else 1.0
-            density[np.argmin(np.abs(grid - samples[0]))] = 1.0 / step
-        return density
-    return gaussian_kde(samples)(grid)
-
-
-def plot_force_distributions(train_n: np.ndarray, test_n: np.ndarray, path: str | Path,
-                             labels: tuple[str, str] = ("train", "test"), title: str = "",
-                             max_samples: int = 20000, seed: int = 0) -> Path:
-    """Fig. 5: kernel density estimates of Fx, Fy, Fz (N) of the training and test frames."""
-    plt = _pyplot()
-    rng = np.random.default_rng(seed)
-    sets = []
-    for forces in (train_n, test_n):
-        forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
-        forces = forces[np.isfinite(forces).all(axis=1)]
-        if len(forces) > max_samples:  # a KDE on 20k points is already smooth; more only costs time
-            forces = forces[rng.choice(len(forces), max_samples, replace=False)]
-        sets.append(forces)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    for k, comp in enumerate(COMPONENTS):
-        values = np.concatenate([s[:, k] for s in sets])
-        lo, hi = (values.min(), values.max()) if len(values) else (-1.0, 1.0)
-        pad = 0.1 * (hi - lo) + 1e-3
-        grid = np.linspace(lo - pad, hi + pad, 400)
-        for forces, label, colour in zip(sets, labels, ("tab:blue", "tab:orange"), strict=True):
-            if len(forces):
-                density = force_kde(forces[:, k], grid)
-                axes[k].plot(grid, density, color=colour, label=f"{label} ({len(forces)} frames)")
-                axes[k].fill_between(grid, density, color=colour, alpha=0.2)
-        axes[k].set_xlabel(f"F{comp[1]} (N)")
-        axes[k].grid(alpha=0.3)
-    axes[0].set_ylabel("density")
-    axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path)
-
-
-def plot_training_curves(curves: Mapping[str, Mapping[str, np.ndarray]], path: str | Path, title: str = "") -> Path:
-    """Training and validation loss (normalised MSE) against the epoch, one colour per run
-    ({label: `epoch_curves` result}); a dot marks each run's best validation epoch, the checkpoint
-    that testing uses. The legend gives the epochs and the summed epoch wall time."""
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 4.2))
-    palette = plt.get_cmap("tab10" if len(curves) <= 10 else "tab20")  # a full grid has 11 or more runs
-    for k, (label, run) in enumerate(curves.items()):
-        colour = palette(k % palette.N)
-        epochs = np.asarray(run["epoch"])
-        minutes = np.nansum(run["time/epoch_s"]) / 60.0
-        ax.plot(epochs, run["train/loss_epoch"], color=colour, alpha=0.5, linestyle="--")
-        val = np.asarray(run["val/loss"], dtype=np.float64)
-        ax.plot(epochs, val, color=colour, label=f"{label}: {len(epochs)} epochs, {minutes:.0f} min")
-        best = training_summary(run)["best_epoch"]
-        if best is not None:
-            ax.plot(best, val[epochs == best][0], "o", color=colour)
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("loss (normalised MSE)")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3, which="both")
-    ax.plot([], [], color="grey", linestyle="--", alpha=0.5, label="training (dashed)")
-    ax.legend(fontsize=8)
-    if title:
-        ax.set_title(title)
-    return save_figure(fig, path)
-
-
-def plot_first_frames(images: Mapping[str, np.ndarray], path: str | Path, title: str = "") -> Path:
-    """The first-frame pictures of several recordings ({title: BGR image}, e.g.
-    `vfdata.recon.preview.first_frame_preview`) side by side, two to a row."""
-    plt = _pyplot()
-    cols = min(2, len(images))
-    rows = -(-len(images) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(6.4 * cols, 5.4 * rows), squeeze=False)
-    for ax in axes.ravel():
-        ax.axis("off")
-    for ax, (label, image) in zip(axes.ravel(), images.items(), strict=False):
-        ax.imshow(np.ascontiguousarray(image[..., ::-1]))
-        ax.set_title(label, fontsize=10)
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path)
-
-
-def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                        path: str | Path, mask: np.ndarray | None = None, title: str = "") -> Path:
-    """Fig. 6: tracked points of each tracker on the left image of one (peak) frame, side by side.
-    tracks: {label: (points_uv (N, 2) px, visible (N,) bool)}; lost or invisible points are drawn
-    hollow, visible ones filled. The tissue mask outline is drawn when given."""
-    plt = _pyplot()
-    rgb = np.asarray(image_bgr)[..., ::-1]
-    fig, axes = plt.subplots(1, len(tracks), figsize=(5.2 * len(tracks), 4.4), squeeze=False)
-    for ax, (label, (uv, visible)) in zip(axes[0], tracks.items(), strict=True):
-        uv = np.asarray(uv, dtype=np.float64)
-        visible = np.asarray(visible, dtype=bool) & np.isfinite(uv).all(axis=1)
-        ax.imshow(rgb)
-        if mask is not None and np.asarray(mask).any():
-            ax.contour(np.asarray(mask).astype(float), levels=[0.5], colors="white", linewidths=0.8)
-        ax.scatter(uv[visible, 0], uv[visible, 1], s=9, c="yellow", edgecolors="black", linewidths=0.3)
-        hidden = ~visible & np.isfinite(uv).all(axis=1)
-        ax.scatter(uv[hidden, 0], uv[hidden, 1], s=9, facecolors="none", edgecolors="cyan", linewidths=0.5)
-        ax.set_title(f"{label}: {int(visible.sum())}/{len(uv)} visible")
-        ax.set_xlim(0, rgb.shape[1])
-        ax.set_ylim(rgb.shape[0], 0)
-        ax.axis("off")
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path)

@@ -27,8 +27,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vfdata.experiment import ExperimentOptions, run_experiment, summary_text
     from vfdata.sim import synthesize
+    from vfmodels.experiment.report import summary_text
+    from vfmodels.experiment.runner import ExperimentOptions, run_experiment
 
     started = time.perf_counter()
     progress = sys.stderr.isatty()
@@ -41,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
                                 progress=progress)
     result = run_experiment(manifest, args.dir / "results", options)
     print("[3/3] results\n")
-    print(summary_text(result.out, result.reports))
+    print(summary_text(result.reports))
     total = time.perf_counter() - started
     steps = {"synthesis": synth_s, **result.seconds}
     print("\nwall time: " + ", ".join(f"{k} {v:.0f} s" for k, v in steps.items()) + f"; total {total / 60:.1f} min")

@@ -1,37 +1,33 @@
-"""`vfdata experiment MANIFEST --out DIR`: the paper's grid (proposed model, ablations, baselines x
-seeds) on one dataset, then Tables I-III, the timing table and the figures (docs/experiments.md)."""
+"""`vfdata experiment MANIFEST --out DIR`: the paper's grid (the models, ablations, baselines x seeds)
+on one dataset, then Tables I-III, the timing table and the figures (docs/experiments.md)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-VARIANT_NAMES = ("proposed", "camera_frame", "klt", "point_cloud", "position_only", "velocity_only", "top_bottom",
-                 "rgb", "depth_vit")
-SIMULATOR_VARIANT_NAMES = ("groundtruth", "camera_frame_groundtruth")
-EXTRA_VARIANT_NAMES = ("canonical_side", "geometry_plus")
+from vfmodels.experiment.variants import EXTRA_VARIANTS, PAPER_VARIANTS, SIMULATOR_VARIANTS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    # The variant list lives in vfdata.experiment, which imports torch: too heavy for every `vfdata`
-    # start-up, so the help names them from a literal kept equal to it by tests/test_cli.py.
     p = sub.add_parser(
         "experiment", help="train and test every model variant x seed on a dataset; write the tables and plots",
         description="Converts and processes every recording of the manifest (once per tracker needed; existing "
                     "outputs are kept), trains and tests each variant with each seed (finished runs are not "
                     "repeated), and writes Tables I-III, the timing table and the figures into OUT. Variants: "
-                    + ", ".join(VARIANT_NAMES) + "; on simulated recordings, only when named: "
-                    + ", ".join(SIMULATOR_VARIANT_NAMES) + " (the simulator's true tracks); beyond the paper, "
-                    "only when named: " + ", ".join(EXTRA_VARIANT_NAMES) + " (each recording mirrored to the flank "
-                    "of the tissue its first frame shows; the tracks of the geometry+ tracker).")
+                    + ", ".join(PAPER_VARIANTS) + "; on simulated recordings, only when named: "
+                    + ", ".join(SIMULATOR_VARIANTS) + " (the simulator's true tracks); beyond the paper, "
+                    "only when named: " + ", ".join(EXTRA_VARIANTS) + ".")
     p.add_argument("manifest", type=Path, help="dataset manifest, e.g. datasets/glove.manifest.yaml")
     p.add_argument("--out", type=Path, required=True, help="results folder, e.g. results/glove")
     p.add_argument("--seeds", type=int, default=3, help="seeds per variant (default 3)")
-    p.add_argument("--epochs", type=int, help="training epochs (default: the config's, 60)")
-    p.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: all)")
+    p.add_argument("--epochs", type=int, help="training epochs (default: the config's)")
+    p.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: the paper's grid)")
     p.add_argument("--configs", type=Path, help="folder of the training configs (default: the repository's configs/)")
     p.add_argument("--depth", default="sgbm", help="depth backend for processing (default sgbm)")
     p.add_argument("--segment", default="colortrack", help="mask backend for processing (default colortrack)")
+    p.add_argument("--prompt", help="first-frame tissue prompt (box:x0,y0,x1,y1) for recordings whose metadata "
+                                    "and manifest entry give none")
     p.add_argument("--workers", type=int, default=1, help="recordings processed in parallel (default 1)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")
     p.add_argument("--reports-only", action="store_true", help="only (re)write the tables and plots of OUT")
@@ -45,19 +41,18 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vfdata.experiment import ExperimentOptions, run_experiment, summary_text, write_reports
+    from vfmodels.experiment.report import summary_text, write_reports
+    from vfmodels.experiment.runner import ExperimentOptions, run_experiment
 
     if args.reports_only:
-        paths = write_reports(args.out, args.manifest)
-        print(summary_text(args.out, paths))
+        print(summary_text(write_reports(args.out, args.manifest)))
         return 0
-    options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants,
-                                depth=args.depth, segment=args.segment, workers=args.workers,
-                                max_frames=args.max_frames, progress=not args.quiet,
-                                train_args=args.train_args)
+    options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants, depth=args.depth,
+                                segment=args.segment, prompt=args.prompt, workers=args.workers,
+                                max_frames=args.max_frames, progress=not args.quiet, train_args=args.train_args)
     if args.configs is not None:
         options.configs = args.configs
     result = run_experiment(args.manifest, args.out, options)
-    print(summary_text(result.out, result.reports))
+    print(summary_text(result.reports))
     print("wall time: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.seconds.items()))
     return 0

@@ -1,10 +1,11 @@
 """`vfdata predict RECORDING.mcap --ckpt CKPT`: forces from video alone (no force sensor, no ECM pose),
-written as /force/estimate with a plot and an overlay video; `--stream` runs frame by frame."""
+written as /force/estimate with a plot and an overlay video; `--stream` runs frame by frame.
+
+The heavy modules (torch, the models) are imported inside `run`, so `vfdata --help` starts fast."""
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -16,12 +17,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "predict", help="estimate forces on a recording without a force sensor (overlay video, plot, MCAP)",
         description="Processes the recording (depth, tissue mask, object frame, tracks), runs the trained "
                     "point model and writes OUT/<id>.force.mcap (/force/estimate, WrenchStamped in the object "
-                    "frame 'tissue_object'), OUT/<id>.force.png and OUT/<id>.overlay.mp4. Without an ECM pose "
-                    "the object frame's X axis is arbitrary (the image's up direction made perpendicular to "
-                    "the tissue axis). --stream feeds the frames one by one to the live estimator instead and "
-                    "reports its per-frame latency.")
+                    "frame 'tissue_object'), OUT/<id>.force.png and OUT/<id>.overlay.mp4; existing outputs are "
+                    "kept unless --overwrite. Without an ECM pose the object frame's X axis is arbitrary (the "
+                    "image's up direction made perpendicular to the tissue axis). --stream feeds the frames one "
+                    "by one to the live estimator instead and reports its per-frame latency.")
     p.add_argument("recording", type=Path, help="recording MCAP (stereo images; force and ECM pose optional)")
-    p.add_argument("--ckpt", type=Path, required=True, help="trained checkpoint (train.py / vfdata experiment)")
+    p.add_argument("--ckpt", type=Path, required=True,
+                   help="trained checkpoint: a .ckpt file, or a run folder (its best checkpoint)")
     p.add_argument("--prompt", help="first-frame tissue prompt, e.g. box:x0,y0,x1,y1 "
                                     "(default: prompt_box of the recording's metadata)")
     p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
@@ -31,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
     p.add_argument("--max-frames", type=int, help="only the first N frames")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     p.add_argument("--stream", action="store_true", help="run the live, frame-by-frame estimator")
     p.add_argument("--pipelined", action="store_true",
                    help="with --stream: image stages of the next frame in a second thread (2 cores)")
@@ -38,6 +41,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="torch/OpenCV threads (default 1, the fastest for per-frame work on a few cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
+
+
+def checkpoint_file(path: Path) -> Path:
+    """A .ckpt file as given, or the best checkpoint of a run folder (its checkpoints/)."""
+    from vfmodels.train import best_checkpoint
+
+    if path.is_dir():
+        return best_checkpoint(path / "checkpoints" if (path / "checkpoints").is_dir() else path)
+    return path
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,15 +60,16 @@ def run(args: argparse.Namespace) -> int:
     # two stages run at once), so one thread per stage is the fastest on a few cores.
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
+    args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
     if args.stream:
         return _stream(args, window)
-    from vfdata.predict import predict_recording
     from vfdata.processing import ProcessOptions
+    from vfmodels.predict import predict_recording
 
-    options = ProcessOptions(depth=args.depth, segment=args.segment, tracker="geometry", max_frames=args.max_frames)
-    result = predict_recording(args.recording, args.ckpt, args.out, prompt=args.prompt, process_options=options,
-                               window=window, video=not args.no_video, progress=not args.quiet)
+    options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames)
+    result = predict_recording(args.recording, args.ckpt, args.out, options, window=window, video=not args.no_video,
+                               progress=not args.quiet, overwrite=args.overwrite)
     print(f"{result.frames} frames; object frame X axis "
           f"{'from gravity (ECM pose)' if result.up_known else 'arbitrary (no ECM pose)'}")
     stages = {**result.stage_fps, "force": result.force_fps}
@@ -70,22 +83,22 @@ def run(args: argparse.Namespace) -> int:
 def _stream(args: argparse.Namespace, window: int | None) -> int:
     from tqdm import tqdm
 
-    from vfdata.errors import InputError
-    from vfdata.predict import StreamingForceEstimator, write_force_mcap
-    from vfdata.processing import camera_up
+    from vfdata.engine import EngineOptions
+    from vfdata.errors import OutputExistsError
+    from vfdata.processing import camera_up, recording_prompt
     from vfdata.recording import Recording
+    from vfdata.recording.derived import write_force_estimate
+    from vfmodels.live import StreamingForceEstimator
 
     out = Path(args.out or args.recording.parent)
     out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{args.recording.name.removesuffix('.mcap')}.force.mcap"
+    if path.exists() and not args.overwrite:
+        raise OutputExistsError(path)
     with Recording.open(args.recording) as rec:
-        prompt = args.prompt or rec.metadata.extra.get("prompt_box")
-        if not prompt:
-            raise InputError(args.recording, "no tissue prompt: give --prompt box:x0,y0,x1,y1")
-        if not prompt.startswith(("box:", "points:", "pos:", "neg:")):
-            values = json.loads(prompt) if prompt.strip().startswith("[") else prompt.split(",")
-            prompt = "box:" + ",".join(str(int(round(float(v)))) for v in values)
-        estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm, prompt,
-                                            depth=args.depth, segment=args.segment, up=camera_up(rec),
+        estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm,
+                                            recording_prompt(rec, args.recording, args.prompt),
+                                            EngineOptions(depth=args.depth, segment=args.segment), up=camera_up(rec),
                                             window=window, pipelined=args.pipelined)
         n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
         estimates, latencies = [], []
@@ -96,20 +109,19 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             latencies.append(time.perf_counter() - started)
             if result is not None:
                 estimates.append(result)
+        object_frame = estimator.frame
         estimates += estimator.flush()
         estimator.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
-    stem = args.recording.name.removesuffix(".mcap")
-    path = write_force_mcap(out / f"{stem}.force.mcap", np.array([e.stamp_ns for e in estimates]),
-                            np.stack([e.force_n for e in estimates]), estimator.frame.rotation,
-                            estimator.frame.origin, {"stage": "predict --stream", "window": str(window)})
+    write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
+                         object_frame, {"stage": "predict --stream", "window": str(window)}, overwrite=args.overwrite)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
     per_stage_cpu = {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}
+    delay = 2 if args.pipelined else 1
     print(f"{len(estimates)} estimates from {n} frames; per-frame latency (push) median "
           f"{np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} ms, "
-          f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ {2 if args.pipelined else 1} frame(s) of delay: the "
-          "central-difference velocity needs the next frame" + (", and the pipeline one more" if args.pipelined else "")
-          + ")")
+          f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ {delay} frame(s) of delay: the central-difference "
+          "velocity needs the next frame" + (", and the pipeline one more" if args.pipelined else "") + ")")
     print("ms/frame per stage, wall: " + ", ".join(f"{k} {v:.1f}" for k, v in per_stage.items()))
     print("ms/frame per stage, CPU of its thread (= wall on an idle core): "
           + ", ".join(f"{k} {v:.1f}" for k, v in per_stage_cpu.items())

@@ -1,0 +1,245 @@
+"""The per-frame engine of the method: stereo pair -> depth -> tissue mask -> tissue cloud -> (first
+frame: object frame, reference points) -> tracked points. `vfdata process` (offline, into a derived
+MCAP), `vfmodels.predict` (offline, in memory) and the live estimator (`vfmodels.live`, one pair at a
+time) all drive this one engine.
+
+    engine = FrameEngine(camera, baseline_mm, Prompt.parse("box:..."), EngineOptions(), up=up)
+    for result in engine.run(stereo_pairs):        # offline: the depth backend may overlap frames
+        ...  result.mask, result.cloud_mm, result.points_mm, result.visible
+    result = engine.step(index, stamp_ns, left, right)   # live: one pair
+
+Each stage's wall time and the CPU time of the thread that ran it accumulate in `engine.clock`, so
+stage rates can be reported as the method runs (`StageClock.fps`), with the thread count beside them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vfdata.calibration import PinholeCamera
+from vfdata.errors import InputError
+from vfdata.recon import Prompt, estimate_object_frame, make_depth_estimator, make_segmenter, tissue_cloud
+from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view
+from vfdata.tracking.registry import FrameInputs, Tracker, make_tracker
+
+log = logging.getLogger(__name__)
+
+MIN_FIRST_CLOUD = 50  # points: fewer on the first frame means the prompt missed the tissue
+SIM_DEPTH_UNIT_MM = 0.1  # the simulator's ground_truth/depth/*.png
+
+
+@dataclass
+class EngineOptions:
+    """The stages and their settings (`vfdata process` options without the file handling)."""
+
+    depth: str = "sgbm"
+    depth_options: dict = field(default_factory=dict)
+    segment: str = "colortrack"
+    segment_options: dict = field(default_factory=dict)
+    tracker: str = "geometry"  # a name of vfdata.tracking.registry.TRACKERS, or "none"
+    tracker_options: dict = field(default_factory=dict)
+    num_points: int = 256
+    seed: int = 0
+    # Nearest and farthest surface expected in front of the scope, mm: sets the stereo matcher's
+    # disparity range unless depth_options give one. Without a floor, dark textureless background
+    # matches at near-zero disparity (depth near infinity) and leaks into the tissue's edges.
+    working_range_mm: tuple[float, float] = (40.0, 300.0)
+
+
+@dataclass
+class StageClock:
+    """Wall and thread-CPU seconds per stage."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    cpu_seconds: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+
+    @staticmethod
+    def now() -> tuple[float, float]:
+        return time.perf_counter(), time.thread_time()
+
+    def add(self, stage: str, started: tuple[float, float]) -> tuple[float, float]:
+        now = self.now()
+        self.seconds[stage] += now[0] - started[0]
+        self.cpu_seconds[stage] += now[1] - started[1]
+        return now
+
+    def fps(self, frames: int) -> dict[str, float]:
+        return {stage: (frames / s if s > 0 else float("inf")) for stage, s in self.seconds.items()}
+
+
+@dataclass
+class ImageStages:
+    """Depth, mask and cloud of one frame (the stages that need only its images)."""
+
+    depth_mm: np.ndarray  # (H, W) float32, NaN unknown
+    mask: np.ndarray  # (H, W) bool
+    cloud_mm: np.ndarray  # (M, 3) left camera frame
+
+
+@dataclass
+class FrameResult:
+    """Everything the engine knows of one frame; points in the left camera frame, mm."""
+
+    index: int
+    stamp_ns: int
+    left: np.ndarray
+    depth_mm: np.ndarray
+    mask: np.ndarray
+    cloud_mm: np.ndarray
+    points_mm: np.ndarray | None  # (N, 3) tracked points (None: no tracker, or an offline one)
+    visible: np.ndarray | None  # (N,) bool
+
+
+def recorded_depths(ground_truth: Path) -> Iterator[np.ndarray]:
+    """The simulator's true depth maps (mm, NaN unknown), frame by frame."""
+    for path in sorted((Path(ground_truth) / "depth").glob("*.png")):
+        data = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if data is None:
+            raise InputError(path, "not a readable 16-bit depth PNG")
+        depth = data.astype(np.float32) * np.float32(SIM_DEPTH_UNIT_MM)
+        depth[data == 0] = np.nan
+        yield depth
+
+
+class FrameEngine:
+    """Runs the stages frame after frame (see the module docstring). The first frame fixes the object
+    frame (`self.frame`) and starts the tracker; `up` is gravity-up in the left camera frame (from the
+    ECM pose; None: X from the image's up). `ground_truth` is the simulator's ground_truth/ folder,
+    for the `recorded` depth and the `groundtruth` tracker."""
+
+    def __init__(self, camera: PinholeCamera, baseline_mm: float, prompt: Prompt, options: EngineOptions | None = None,
+                 up: np.ndarray | None = None, ground_truth: Path | None = None):
+        self.options = options or EngineOptions()
+        self.camera, self.baseline_mm, self.prompt = camera, float(baseline_mm), prompt
+        self.prompt.check_inside(camera.width, camera.height)
+        self.up, self.ground_truth = up, ground_truth
+        self.depth = make_depth_estimator(self.options.depth, **self._depth_options())
+        self.segmenter = make_segmenter(self.options.segment, **self.options.segment_options)
+        self.clock = StageClock()
+        self.frame: ObjectFrame | None = None
+        self.origin_cut = False
+        self.tracker: Tracker | None = None
+        self.frames = 0
+
+    def _depth_options(self) -> dict:
+        options = dict(self.options.depth_options)
+        if self.options.depth == "sgbm" and not {"min_disparity", "max_disparity"} & set(options):
+            near, far = self.options.working_range_mm
+            options["min_disparity"] = int(np.floor(self.camera.fx * self.baseline_mm / far))
+            options["max_disparity"] = int(np.ceil(self.camera.fx * self.baseline_mm / near))
+        if self.options.depth == "recorded":
+            if self.ground_truth is None:
+                raise InputError(Path("ground_truth"), "depth 'recorded' needs the simulator's ground_truth/ "
+                                                       "(--ground-truth DIR, or beside the raw folder)")
+            options.setdefault("depths", recorded_depths(self.ground_truth))
+        return options
+
+    @property
+    def parameters(self) -> dict:
+        """The stages' names and settings, for provenance."""
+        return {"depth": self.depth.parameters(), "segment": getattr(self.segmenter, "parameters", dict)(),
+                "tracker": {"name": self.options.tracker, "num_points": self.options.num_points,
+                            "seed": self.options.seed, **self.options.tracker_options}}
+
+    @property
+    def offline_tracker(self) -> bool:
+        return self.tracker is not None and self.tracker.offline
+
+    # ---- the stages ------------------------------------------------------------------------------
+
+    def image_stages(self, left: np.ndarray, right: np.ndarray | None, first: bool,
+                     depth_mm: np.ndarray | None = None) -> ImageStages:
+        """Depth (unless given), mask and cloud of one frame. Thread-safe apart from the segmenter's
+        state, so the live estimator may run it for frame t+1 while frame t is tracked."""
+        t = self.clock.now()
+        if depth_mm is None:
+            depth_mm = self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
+            t = self.clock.add("depth", t)
+        mask = self.segmenter.start(left, self.prompt, depth_mm) if first else self.segmenter.track(left, depth_mm)
+        t = self.clock.add("mask", t)
+        cloud = tissue_cloud(depth_mm, mask, self.camera)
+        self.clock.add("cloud", t)
+        return ImageStages(depth_mm, mask, cloud)
+
+    def track(self, index: int, stamp_ns: int, left: np.ndarray, images: ImageStages) -> FrameResult:
+        """The frame's tracked points; the first frame also fixes the object frame and the tracker."""
+        t = self.clock.now()
+        inputs = FrameInputs(index=index, camera=self.camera, image_bgr=left, depth_mm=images.depth_mm,
+                             mask=images.mask, cloud_mm=images.cloud_mm)
+        points = visible = None
+        if self.frames == 0:
+            self._start(inputs)
+            t = self.clock.add("object_frame", t)
+            if self.tracker is not None:
+                points, visible = self.tracker.points, self.tracker.visible
+        elif self.tracker is not None and self.tracker.offline:
+            self.tracker.collect(inputs)
+        elif self.tracker is not None:
+            points, visible = self.tracker.update(inputs)
+        self.clock.add("tracking", t)
+        self.frames += 1
+        return FrameResult(index, int(stamp_ns), left, images.depth_mm, images.mask, images.cloud_mm, points, visible)
+
+    def _start(self, first: FrameInputs) -> None:
+        if not first.mask.any() or len(first.cloud_mm) < MIN_FIRST_CLOUD:
+            raise InputError("prompt", f"the tissue mask of the first frame is empty ({int(first.mask.sum())} "
+                                       f"pixels, {len(first.cloud_mm)} points): check the prompt")
+        self.frame = estimate_object_frame(first.cloud_mm, self.up)
+        self.origin_cut = bool(origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
+        if self.origin_cut:
+            log.warning("warning: the tissue runs out of the image at its wide end: the object frame's origin "
+                        "(2nd percentile along Z) may be where the view cuts it, not at the clamp")
+        if self.options.tracker != "none":
+            self.tracker = make_tracker(self.options.tracker, first, self.options.num_points, self.options.seed,
+                                        ground_truth=self.ground_truth, **self.options.tracker_options)
+
+    def step(self, index: int, stamp_ns: int, left: np.ndarray, right: np.ndarray) -> FrameResult:
+        """One stereo pair through every stage (live use)."""
+        return self.track(index, stamp_ns, left, self.image_stages(left, right, first=self.frames == 0))
+
+    def run(self, pairs: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Iterator[FrameResult]:
+        """(stamp_ns, left, right) rectified pairs -> one FrameResult each, in order. The depth backend
+        sees them as a stream, so it can overlap consecutive frames (sgbm matches the next pair in a
+        second thread while this one is refined); time spent producing the pairs counts as "decode"."""
+        pending: list[tuple[int, np.ndarray]] = []
+
+        def feed():
+            started = self.clock.now()
+            for stamp_ns, left, right in pairs:
+                started = self.clock.add("decode", started)
+                pending.append((stamp_ns, left))
+                yield left, right
+                started = self.clock.now()
+
+        depths = self.depth.depth_stream(feed(), self.camera, self.baseline_mm)
+        index = 0
+        while True:
+            t = self.clock.now()
+            decode_before = self.clock.seconds["decode"]
+            try:
+                depth = next(depths)
+            except StopIteration:
+                return
+            # Waiting for the depth includes producing the pairs it pulled: that counts as decode.
+            self.clock.add("depth", t)
+            self.clock.seconds["depth"] -= self.clock.seconds["decode"] - decode_before
+            stamp_ns, left = pending.pop(0)
+            yield self.track(index, stamp_ns, left, self.image_stages(left, None, index == 0, depth))
+            index += 1
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The tracks of an offline tracker over every frame seen ((F, N, 3) mm, (F, N)); None else."""
+        if not self.offline_tracker:
+            return None
+        t = self.clock.now()
+        tracks = self.tracker.finish()
+        self.clock.add("tracking", t)
+        return tracks

@@ -1,0 +1,1 @@
+"""The model commands of `vfdata` (registered through the `visionforce.commands` entry points)."""

@@ -1,0 +1,88 @@
+"""Step 1 of an experiment: every recording of the manifest converted (raw folder or bag ->
+`<id>.mcap`) and processed once per tracker the chosen variants need (`<id>.processed.mcap`,
+`<id>.klt.mcap`, ...). Existing outputs are kept, so a grid resumes where it stopped."""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from vfdata.conversion.bag_scan import is_bag
+from vfdata.conversion.bags import convert_bag
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.errors import InputError
+from vfdata.manifest import ManifestEntry
+from vfdata.processing import ProcessOptions, process_recording
+from vfmodels.experiment.variants import derived_name
+
+
+@dataclass(frozen=True)
+class ProcessJob:
+    """One recording processed with one tracker (plain values: it crosses to a worker process)."""
+
+    src: str
+    out: str
+    tracker: str
+    depth: str
+    segment: str
+    prompt: str | None
+    max_frames: int | None
+
+
+def derived_path(entry: ManifestEntry, tracker: str) -> Path:
+    return entry.mcap.with_name(derived_name(entry.id, tracker))
+
+
+def convert(entry: ManifestEntry, progress: bool = False) -> None:
+    """`<id>.mcap` from the entry's raw folder or bag, unless it exists."""
+    if entry.mcap.is_file():
+        return
+    if not entry.raw.exists():
+        raise InputError(entry.raw, f"recording {entry.id}: neither the raw folder or bag nor {entry.mcap.name} "
+                                    "exists (for simulated data run `vfdata synth --preset NAME DIR` first)")
+    options = ConvertOptions(progress=progress)
+    if is_bag(entry.raw):
+        convert_bag(entry.raw, entry.mcap, options=options)
+    else:
+        convert_raw_folder(entry.raw, entry.mcap, options=options)
+
+
+def process(job: ProcessJob) -> str:
+    """Run one job; one torch/BLAS thread, since recordings run side by side in processes."""
+    import torch
+
+    torch.set_num_threads(1)
+    process_recording(job.src, job.out, ProcessOptions(depth=job.depth, segment=job.segment, tracker=job.tracker,
+                                                       prompt=job.prompt, max_frames=job.max_frames,
+                                                       progress=False))
+    return job.out
+
+
+def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgbm", segment: str = "colortrack",
+            prompt: str | None = None, max_frames: int | None = None, workers: int = 1,
+            progress: bool = True) -> dict[str, float]:
+    """Convert what is missing, then process every recording for each tracker (skipping outputs that
+    exist; `prompt` for entries without their own). Returns wall seconds per step."""
+    seconds = {}
+    started = time.perf_counter()
+    for entry in tqdm(entries, desc="convert", unit="recording", disable=not progress):
+        convert(entry)
+    seconds["convert"] = time.perf_counter() - started
+    jobs = [ProcessJob(str(e.mcap), str(derived_path(e, t)), t, depth, segment, e.prompt or prompt, max_frames)
+            for t in trackers for e in entries if not derived_path(e, t).is_file()]
+    started = time.perf_counter()
+    with tqdm(total=len(jobs), desc="process", unit="recording", disable=not progress or not jobs) as bar:
+        if workers > 1 and len(jobs) > 1:
+            with ProcessPoolExecutor(workers) as pool:
+                for _ in pool.map(process, jobs):
+                    bar.update()
+        else:
+            for job in jobs:
+                process(job)
+                bar.update()
+    seconds["process"] = time.perf_counter() - started
+    return seconds

@@ -1,0 +1,266 @@
+"""Step 3 of an experiment: from a results folder's runs and processed recordings to Tables I-III,
+the timing table, the paper's claims checked (`claims.json`) and the figures. Also on a partial grid:
+what has run is shown."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from vfdata import metrics as tracking_metrics
+from vfdata.manifest import ManifestEntry, load_manifest
+from vfdata.recon.preview import first_frame_preview
+from vfdata.recording import Recording
+from vfdata.recording.derived import DerivedRecording
+from vfdata.tracking import ground_truth_tracks
+from vfmodels.experiment.prepare import derived_path
+from vfmodels.experiment.variants import ALL_VARIANTS, TRACKER_SUFFIX, Variant
+from vfmodels.reports import figures, tables
+from vfmodels.reports.tables import run_metrics
+
+TRACKER_LABELS = {"geometry": "Geometry-constrained (proposed)", "klt": "KLT (CoTracker stand-in)",
+                  "geometry+": "Geometry+ (with image flow)", "groundtruth": "Ground truth"}
+
+
+def load_runs(out: Path) -> dict[str, list[dict]]:
+    """{variant: [run_metrics result per finished seed]} from OUT/runs/*/seed*/, in the order of the
+    variant registry (unknown folders last); each with "training" where the run's CSV logs are."""
+    found: dict[str, list[dict]] = {}
+    for metrics_path in sorted((out / "runs").glob("*/seed*/metrics.json")):
+        with np.load(metrics_path.parent / "predictions.npz", allow_pickle=False) as predictions:
+            run = run_metrics(dict(predictions))
+        curves = tables.read_epoch_curves(metrics_path.parent)
+        if len(curves["epoch"]):
+            run["training"] = tables.training_summary(curves)
+        found.setdefault(metrics_path.parent.parent.name, []).append(run)
+    order = [n for n in ALL_VARIANTS if n in found] + sorted(set(found) - set(ALL_VARIANTS))
+    return {name: found[name] for name in order}
+
+
+def _in_table(name: str, table: str) -> bool:
+    return table in ALL_VARIANTS.get(name, Variant(name, name, "")).table.split("+")
+
+
+def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str) -> dict[str, Path]:
+    labels = {n: v.label for n, v in ALL_VARIANTS.items()}
+    aggregated = {name: tables.aggregate_seeds(r) for name, r in runs.items()}
+    paths = {}
+    for key, number, stem, title in (
+            ("I", 1, "table1_force", f"Table I: force estimation on {dataset}, the models and the image baselines"),
+            ("II", 2, "table2_ablations", f"Table II: ablations on {dataset}")):
+        chosen = {n: a for n, a in aggregated.items() if _in_table(n, key)}
+        if chosen:
+            for suffix, path in tables.write_force_table(out, stem, chosen, labels, title).items():
+                paths[f"table{number}.{suffix}"] = path
+    checked = claims(aggregated)
+    if checked:
+        (out / "claims.json").write_text(json.dumps(checked, indent=2))
+        paths["claims"] = out / "claims.json"
+    return paths
+
+
+def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
+    """The paper's claims checked on the average RMSE (N): each with the two values and whether it holds."""
+    rmse = {name: agg["value"]["rmse"] for name, agg in aggregated.items()}
+    result = {}
+
+    def compare(key: str, better: str, worse: str, text: str) -> None:
+        if better in rmse and worse in rmse:
+            result[key] = {"text": text, better: rmse[better], worse: rmse[worse],
+                           "holds": bool(rmse[better] <= rmse[worse])}
+
+    def halves(key: str, obj: str, cam: str, text: str) -> None:
+        if obj in rmse and cam in rmse:
+            result[key] = {"text": text, obj: rmse[obj], cam: rmse[cam],
+                           "reduction": -tables.relative_change(rmse[obj], rmse[cam]),
+                           "holds": bool(rmse[obj] <= 0.5 * rmse[cam])}
+
+    halves("object_frame_halves_rmse", "proposed", "camera_frame",
+           "object frame lowers the average RMSE by >= 50% vs the camera frame")
+    halves("object_frame_halves_rmse_groundtruth", "groundtruth", "camera_frame_groundtruth",
+           "with ground-truth tracks, the object frame lowers the average RMSE by >= 50% vs the camera frame")
+    halves("object_frame_halves_rmse_canonical_side", "canonical_side", "camera_frame",
+           "mirrored to the seen flank (beyond the paper), the object frame lowers the average RMSE by >= 50% "
+           "vs the camera frame")
+    compare("geometry_beats_klt", "proposed", "klt", "geometry tracking beats KLT")
+    compare("geometry_plus_beats_klt", "geometry_plus", "klt", "geometry+ tracking (beyond the paper) beats KLT")
+    compare("beats_position_only", "proposed", "position_only", "position + velocity beats position only")
+    compare("beats_velocity_only", "proposed", "velocity_only", "position + velocity beats velocity only")
+    compare("beats_rgb", "proposed", "rgb", "proposed beats RGB only")
+    compare("beats_depth_vit", "proposed", "depth_vit", "proposed beats masked depth + ViT")
+    return result
+
+
+def tracking_quality(processed: Path, recording: Path, ground_truth: Path | None) -> dict:
+    """Coverage and NNI at the force peaks of one recording and, with simulator ground truth, the
+    tracking error over all frames: {"coverage": [...], "nni": [...], "error": TrackingError dict}."""
+    with DerivedRecording.open(processed) as derived:
+        tracks = derived.tracks()
+        points_cam = np.stack([tracks.points_camera_mm(i) for i in range(len(tracks.times_ns))])
+        with Recording.open(recording) as rec:
+            force = rec.force_at(tracks.times_ns)[:, :3]
+            camera = rec.camera
+        peaks = tracking_metrics.force_peaks(np.nan_to_num(force))
+        coverage, nni = [], []
+        for peak in peaks:
+            coverage.append(tracking_metrics.coverage(camera.project(points_cam[peak]), derived.mask(int(peak)),
+                                                      tracks.visible[peak]))
+            nni.append(tracking_metrics.nearest_neighbour_index(points_cam[peak], points_cam[0], tracks.visible[peak],
+                                                                tracks.visible[0]))
+    result = {"coverage": coverage, "nni": nni, "peaks": [int(p) for p in peaks]}
+    if ground_truth is not None and (ground_truth / "points.npy").is_file():
+        material = np.load(ground_truth / "points.npy", mmap_mode="r")
+        normals = np.load(ground_truth / "normals.npy", mmap_mode="r")
+        frames = min(len(points_cam), len(material))
+        truth, truth_normals = ground_truth_tracks(points_cam[0], material[:frames], normals[:frames])
+        result["error"] = tracking_metrics.tracking_error(points_cam[:frames], truth, truth_normals,
+                                                          tracks.visible[:frames]).as_dict()
+    return result
+
+
+def tracking_table(entries: list[ManifestEntry], trackers: list[str]) -> tuple[dict, dict]:
+    """Table III rows per tracker over the test recordings, and the per-recording results."""
+    rows, per_recording = {}, {}
+    tests = [e for e in entries if e.split == "test"]
+    for tracker in trackers:
+        results = []
+        for entry in tests:
+            if derived_path(entry, tracker).is_file() and entry.mcap.is_file():
+                gt = entry.ground_truth
+                results.append(tracking_quality(derived_path(entry, tracker), entry.mcap, gt if gt.is_dir() else None))
+                per_recording.setdefault(tracker, {})[entry.id] = results[-1]
+        if not results:
+            continue
+        coverage = np.concatenate([r["coverage"] for r in results])
+        nni = np.concatenate([r["nni"] for r in results])
+        row = {"peaks": int(len(coverage)), "coverage_mean": float(np.mean(coverage)) if len(coverage) else np.nan,
+               "coverage_std": float(np.std(coverage)) if len(coverage) else np.nan,
+               "nni_mean": float(np.nanmean(nni)) if len(nni) else np.nan,
+               "nni_std": float(np.nanstd(nni)) if len(nni) else np.nan}
+        errors = [r["error"] for r in results if "error" in r]
+        if errors:
+            # Pooled over recordings by the number of compared pairs (medians are not additive, so
+            # this is a weighted mean of per-recording medians and percentiles; stated in the docs).
+            weights = np.array([e["count"] for e in errors], dtype=np.float64)
+            for key in errors[0]:
+                if key != "count":
+                    row[key] = float(np.average([e[key] for e in errors], weights=weights))
+        rows[tracker] = row
+    return rows, per_recording
+
+
+def stage_rates(entries: list[ManifestEntry], tracker: str) -> dict[str, float]:
+    per, frames = [], []
+    for entry in entries:
+        if derived_path(entry, tracker).is_file():
+            with DerivedRecording.open(derived_path(entry, tracker)) as derived:
+                if derived.meta.get("stage_fps"):
+                    per.append(derived.meta.json("stage_fps"))
+                    frames.append(int(derived.meta.get("frames", "1")))
+    return tables.combine_stage_fps(per, frames) if per else {}
+
+
+def first_frame(entry: ManifestEntry, tracker: str) -> np.ndarray:
+    """`first_frame_preview` of a processed recording, drawn from its files."""
+    with Recording.open(entry.mcap) as rec:
+        image, camera = rec.rectified_frame(0).left, rec.camera
+    with DerivedRecording.open(derived_path(entry, tracker)) as derived:
+        tracks = derived.tracks()
+        return first_frame_preview(image, derived.mask(0), camera, tracks.frame, tracks.points_camera_mm(0))
+
+
+def write_figures(out: Path, entries: list[ManifestEntry], trackers: list[str], dataset: str) -> dict[str, Path]:
+    paths = {}
+    for variant in ("visionforce", "proposed"):
+        runs = sorted((out / "runs" / variant).glob("seed*/predictions.npz"))
+        if runs:
+            with np.load(runs[0], allow_pickle=False) as predictions:
+                paths["fig7"] = figures.plot_force_curves(dict(predictions), out / "fig7_force_curves.png",
+                                                          title=f"{dataset}: {variant} model, test orientations")
+            break
+    curves = {f"{run.parent.name} {run.name}": tables.read_epoch_curves(run)
+              for run in sorted((out / "runs").glob("*/seed*"))}
+    curves = {label: c for label, c in curves.items() if len(c["epoch"])}  # runs without logs yet
+    if curves:
+        paths["training"] = figures.plot_training_curves(curves, out / "fig_training_curves.png",
+                                                         title=f"{dataset}: loss per epoch")
+    forces: dict[str, list[np.ndarray]] = {"train": [], "test": []}
+    for entry in entries:
+        if entry.split in forces and entry.mcap.is_file():
+            with Recording.open(entry.mcap) as rec:
+                forces[entry.split].append(rec.force_at(rec.frame_times_ns)[:, :3])
+    if forces["train"] and forces["test"]:
+        paths["fig5"] = figures.plot_force_distributions(np.concatenate(forces["train"]),
+                                                         np.concatenate(forces["test"]),
+                                                         out / "fig5_force_kde.png", title=f"{dataset}: force")
+    test = next((e for e in entries if e.split == "test" and derived_path(e, trackers[0]).is_file()), None)
+    if test is not None:
+        paths["fig6"] = _tracked_points_figure(out, test, trackers)
+    firsts = {f"{e.id} ({e.orientation_deg:g} deg)": first_frame(e, trackers[0])
+              for e in entries if e.split == "test" and derived_path(e, trackers[0]).is_file()}
+    if firsts:
+        paths["first_frames"] = figures.plot_first_frames(
+            firsts, out / "fig_first_frames.png",
+            title=f"{dataset}: first frame of each test recording (mask, object frame, tracked points)")
+    return paths
+
+
+def _tracked_points_figure(out: Path, test: ManifestEntry, trackers: list[str]) -> Path:
+    """Fig. 6: each tracker's points on the test recording's largest force peak."""
+    with DerivedRecording.open(derived_path(test, trackers[0])) as derived, Recording.open(test.mcap) as rec:
+        limit = derived.num_frames
+        force = rec.force_at(rec.frame_times_ns)[:, :3]
+        peaks = tracking_metrics.force_peaks(np.nan_to_num(force))
+        peaks = peaks[peaks < limit]
+        peak = int(peaks[np.argmax(np.linalg.norm(force[peaks], axis=1))]) if len(peaks) else limit - 1
+        image, camera, mask = rec.rectified_frame(peak).left, rec.camera, derived.mask(peak)
+    shown = {}
+    for tracker in trackers:
+        if derived_path(test, tracker).is_file():
+            with DerivedRecording.open(derived_path(test, tracker)) as derived:
+                tracks = derived.tracks()
+            shown[tracker] = (camera.project(tracks.points_camera_mm(peak)), tracks.visible[peak])
+    return figures.plot_tracked_points(image, shown, out / "fig6_tracked_points.png", mask,
+                                       title=f"{test.id}, frame {peak} (force peak)")
+
+
+def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[str, Path]:
+    """All tables and plots of a results folder (also on a partial grid)."""
+    out = Path(out)
+    if manifest is None:
+        manifest = json.loads((out / "experiment.json").read_text())["manifest"]
+    data = load_manifest(manifest)
+    entries = list(data.entries)
+    runs = load_runs(out)
+    paths = force_tables(out, runs, data.name) if runs else {}
+    trackers = [t for t in TRACKER_SUFFIX if any(derived_path(e, t).is_file() for e in entries)]
+    rows, per_recording = tracking_table(entries, trackers)
+    if rows:
+        (out / "table3_tracking.md").write_text(tables.tracking_table_markdown(rows, TRACKER_LABELS))
+        (out / "table3_tracking.csv").write_text(tables.tracking_table_csv(rows))
+        (out / "tracking_per_recording.json").write_text(json.dumps(per_recording, indent=2))
+        paths["table3.md"] = out / "table3_tracking.md"
+    rates = stage_rates(entries, "geometry")
+    model_fps = [json.loads(p.read_text()).get("force_fps") for p in (out / "runs").glob("*/seed*/metrics.json")]
+    model_fps = [f for f in model_fps if f]
+    if model_fps:
+        rates["force"] = float(np.mean(model_fps))
+    if rates:
+        (out / "timing.md").write_text(tables.timing_table_markdown(rates))
+        (out / "timing.json").write_text(json.dumps(rates, indent=2))
+        paths["timing.md"] = out / "timing.md"
+    paths.update(write_figures(out, entries, trackers or ["geometry"], data.name))
+    return paths
+
+
+def summary_text(paths: dict[str, Path]) -> str:
+    """What the command prints at the end: Table I (or II), the claims and where everything is."""
+    lines = [paths[key].read_text() for key in ("table1.md", "table2.md") if key in paths]
+    if "claims" in paths:
+        for claim in json.loads(paths["claims"].read_text()).values():
+            lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")
+    lines.append("")
+    lines += [f"{key:>10}: {path}" for key, path in sorted(paths.items())]
+    return "\n".join(lines)

@@ -1,0 +1,194 @@
+"""The experiment grid of the paper: every model variant x seed on one dataset, then the reports.
+
+    vfdata experiment datasets/glove.manifest.yaml --out results/glove [--seeds 3] [--epochs 60]
+
+Steps (docs/experiments.md):
+1. Prepare (`prepare`): convert and process every recording, once per tracker the variants need; a
+   manifest per tracker is written to `OUT/manifests/`.
+2. Train and test each variant x seed through the project's LightningCLI (`vfmodels.train`) with the
+   variant's config from `configs/`: best checkpoint by validation loss, then `trainer.predict` over
+   the test split. Each run folder `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames:
+   recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run
+   with a metrics.json is finished and is not repeated, so an interrupted grid resumes.
+3. Report (`vfmodels.experiment.report`): Tables I-III, the timing table and the figures into OUT/.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import lightning.pytorch as L
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from vfdata.errors import InputError, VisionForceError
+from vfdata.manifest import Manifest, load_manifest, write_manifest
+from vfmodels.experiment.prepare import derived_path, prepare
+from vfmodels.experiment.report import run_metrics, write_reports
+from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, Variant
+from vfmodels.prediction_writer import PredictionCollector
+from vfmodels.regressor import ForceRegressor
+from vfmodels.train import best_checkpoint, make_cli
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@dataclass
+class ExperimentOptions:
+    seeds: int = 3
+    epochs: int | None = None  # None: the config's
+    variants: list[str] | None = None  # None: DEFAULT_VARIANTS; the others only by name
+    configs: Path = CONFIGS
+    depth: str = "sgbm"
+    segment: str = "colortrack"
+    prompt: str | None = None  # first-frame prompt for recordings whose metadata and manifest entry have none
+    workers: int = 1  # recordings processed in parallel processes
+    max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
+    train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
+    progress: bool = True
+
+    def chosen(self) -> list[Variant]:
+        names = self.variants or list(DEFAULT_VARIANTS)
+        unknown = [n for n in names if n not in ALL_VARIANTS]
+        if unknown:
+            raise VisionForceError(f"unknown variant(s) {', '.join(unknown)} (known: {', '.join(ALL_VARIANTS)})")
+        return [ALL_VARIANTS[n] for n in names]
+
+
+def tracker_manifest(manifest: Manifest, tracker: str, out: Path) -> Path:
+    """A copy of the manifest whose `processed:` entries name the tracker's derived files."""
+    entries = [e.with_processed(derived_path(e, tracker)) for e in manifest.entries]
+    return write_manifest(out, f"{manifest.name}-{tracker}", entries)
+
+
+@contextmanager
+def _quiet_lightning():
+    """Lightning's start-up chatter (accelerator lines, tips, advice on workers) off in grid runs."""
+    loggers = [logging.getLogger(name) for name in ("lightning.pytorch", "lightning.fabric", "lightning")]
+    levels = [lg.level for lg in loggers]
+    try:
+        for lg in loggers:
+            lg.setLevel(logging.WARNING)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*(LeafSpec|log_every_n_steps|num_workers|_pytree).*")
+            yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
+def test_predictions(regressor: ForceRegressor, loader) -> tuple[dict[str, np.ndarray], float]:
+    """`trainer.predict` over a test loader -> (per-frame predictions, model frames/s)."""
+    collector = PredictionCollector()
+    trainer = L.Trainer(accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[collector])
+    started = time.perf_counter()
+    with _quiet_lightning():
+        trainer.predict(regressor, dataloaders=loader, return_predictions=False)
+    seconds = time.perf_counter() - started
+    frames = collector.frames
+    if frames is None or not len(frames["true"]):
+        raise VisionForceError("the test split gave no clips")
+    clips = len(loader.dataset)
+    return frames, clips * loader.dataset.spec.clip_frames / max(seconds, 1e-9)
+
+
+def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options: ExperimentOptions,
+            cache_dir: Path) -> dict:
+    """Train (best checkpoint by validation loss) and test one variant with one seed; writes
+    predictions.npz and, last, metrics.json (the marker of a finished run)."""
+    config = options.configs / variant.config
+    if not config.is_file():
+        raise InputError(config, f"config of variant '{variant.name}' not found")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    args = [f"--config={config}", f"--data.manifest={manifest}", f"--seed_everything={seed}",
+            f"--trainer.default_root_dir={run_dir}", "--trainer.enable_progress_bar=false",
+            "--trainer.enable_model_summary=false", "--data.progress=false",
+            f"--data.cache_dir={cache_dir}", *options.train_args]
+    if options.epochs is not None:
+        args.append(f"--trainer.max_epochs={options.epochs}")
+    started = time.perf_counter()
+    with _quiet_lightning():
+        cli = make_cli(args, run=False)
+        cli.datamodule.setup("fit")  # decoding (or the cache) apart from the training time
+        setup_seconds = time.perf_counter() - started
+        last = run_dir / "checkpoints" / "last.ckpt"  # resume an interrupted run of this variant and seed
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=str(last) if last.is_file() else None)
+    train_seconds = time.perf_counter() - started - setup_seconds
+    best = cli.trainer.checkpoint_callback.best_model_path or str(best_checkpoint(run_dir / "checkpoints"))
+    regressor = ForceRegressor.load(best)
+    cli.datamodule.setup("test")
+    predictions, force_fps = test_predictions(regressor, cli.datamodule.test_dataloader())
+    np.savez_compressed(run_dir / "predictions.npz", **predictions)
+    metrics = run_metrics(predictions)
+    summary = {
+        "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config),
+        "checkpoint": str(Path(best).resolve()), "epochs": cli.trainer.current_epoch,
+        "setup_seconds": round(setup_seconds, 1), "train_seconds": round(train_seconds, 1),
+        "test_frames": int(len(predictions["true"])), "force_fps": force_fps, "torch_threads": torch.get_num_threads(),
+        "pooled": metrics["pooled"], "mean": metrics["mean"], "std": metrics["std"],
+        "groups": {str(k): v for k, v in metrics["groups"].items()},
+    }
+    tmp = run_dir / "metrics.json.partial"
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(run_dir / "metrics.json")
+    return summary
+
+
+def run_folder(out: Path, variant: Variant, seed: int) -> Path:
+    return out / "runs" / variant.name / f"seed{seed}"
+
+
+@dataclass
+class ExperimentResult:
+    out: Path
+    runs: dict[str, list[Path]]  # variant -> run folders with metrics
+    reports: dict[str, Path]
+    seconds: dict[str, float]
+
+
+def run_experiment(manifest_path: str | Path, out: str | Path, options: ExperimentOptions | None = None
+                   ) -> ExperimentResult:
+    """The whole grid (see the module docstring); resumable."""
+    options = options or ExperimentOptions()
+    out = Path(out)
+    manifest = load_manifest(manifest_path)
+    variants = options.chosen()
+    trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
+    seconds = prepare(list(manifest.entries), trackers, options.depth, options.segment, options.prompt,
+                      options.max_frames, options.workers, options.progress)
+    manifests = {t: tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
+    (out / "experiment.json").write_text(json.dumps({
+        "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,
+        "epochs": options.epochs, "depth": options.depth, "segment": options.segment,
+        "max_frames": options.max_frames, "cpu_count": os.cpu_count(),
+    }, indent=2))
+    grid = [(v, s) for v in variants for s in range(options.seeds)]
+    todo = [(v, s) for v, s in grid if not (run_folder(out, v, s) / "metrics.json").is_file()]
+    runs: dict[str, list[Path]] = {v.name: [] for v in variants}
+    started = time.perf_counter()
+    with tqdm(total=len(grid), initial=len(grid) - len(todo), desc="experiment", unit="run",
+              disable=not options.progress) as bar:
+        for variant, seed in grid:
+            run_dir = run_folder(out, variant, seed)
+            if (variant, seed) in todo:
+                bar.set_postfix_str(f"{variant.name} seed {seed}")
+                run_one(variant, seed, manifests[variant.tracker], run_dir, options, out / "cache")
+                bar.update()
+            runs[variant.name].append(run_dir)
+    seconds["train_test"] = time.perf_counter() - started
+    started = time.perf_counter()
+    paths = write_reports(out, manifest.path)
+    seconds["reports"] = time.perf_counter() - started
+    (out / "timing_wall.json").write_text(json.dumps(seconds, indent=2))
+    return ExperimentResult(out, runs, paths, seconds)

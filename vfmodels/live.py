@@ -1,0 +1,189 @@
+"""Live force estimation: stereo pairs in, one at a time, forces out.
+
+`StreamingForceEstimator.push(left, right, stamp_ns)` runs the per-frame engine (`vfdata.engine`:
+depth, mask, cloud, object frame, tracking) on one rectified pair and the model on its tracks.
+Velocities are central differences (as in training), so frame t's force is known once frame t+1 has
+arrived: `push` returns the estimate of the previous frame (one frame of latency, 33 ms at 30
+frames/s), None on the first call. Over a whole recording the forces equal `vfmodels.predict`'s.
+
+`pipelined=True` runs the image stages (depth, mask, cloud) of frame t in a worker thread while the
+calling thread tracks frame t-1 and runs the model (OpenCV, NumPy and PyTorch release the GIL): on two
+cores the throughput is set by the slower half instead of the sum, for one more frame of latency.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from vfdata.calibration import PinholeCamera
+from vfdata.clips.spec import ClipSpec
+from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.engine import EngineOptions, FrameEngine, ImageStages
+from vfdata.errors import VisionForceError
+from vfdata.recon import Prompt
+from vfmodels.predict import CLIP_FRAMES, load_force_model
+from vfmodels.regressor import ForceRegressor
+
+
+@dataclass
+class ForceEstimate:
+    stamp_ns: int  # the frame the force belongs to (one frame before the latest push)
+    force_n: np.ndarray  # (3,) object frame
+    latency_s: float  # wall time of the push that produced it (all stages + model)
+
+
+class StreamingForceModel:
+    """The model half of live estimation: object-frame tracks in, one frame at a time, forces out.
+
+    `push(stamp_ns, points_object_mm (N, 3), visible (N,))` -> (stamp, force (3,) N) of the previous
+    frame, or None on the first frame; `flush()` gives the last frame's."""
+
+    def __init__(self, regressor: ForceRegressor, spec: ClipSpec, rotation: np.ndarray, origin_mm: np.ndarray,
+                 window: int | None = CLIP_FRAMES):
+        self.regressor, self.spec, self.window = regressor, spec, window
+        self.object_frame = (np.asarray(rotation), np.asarray(origin_mm))
+        self.recent: deque = deque(maxlen=3)  # (stamp, object-frame points, visible) of the last frames
+        self.embeddings: deque = deque(maxlen=window or 1)
+        self.state = None  # LSTM (h, c) when window is None
+        self.keep: np.ndarray | None = None  # top/bottom subset, fixed on the first frame
+        self.side = 1.0  # the y mirror (`ClipSpec.canonical_side`), fixed on the first frame
+
+    def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
+        self.recent.append((int(stamp_ns), np.asarray(points_object_mm, dtype=np.float64),
+                            np.asarray(visible, dtype=bool)))
+        if len(self.recent) == 1:
+            self.side = recording_side(self.spec, self.recent[0][1], self.recent[0][2])
+            if self.spec.subset == "top_bottom_20":
+                self.keep = top_bottom(self.recent[0][1])
+            return None
+        # The middle frame of the last three (the first frame, from the first two): its velocity is
+        # a central difference (one-sided at the start), as over a whole recording.
+        return self._estimate(len(self.recent) - 2)
+
+    def flush(self) -> tuple[int, np.ndarray] | None:
+        """The last frame's estimate (one-sided velocity), at the end of a stream; then resets."""
+        result = None
+        if len(self.recent) >= 2:
+            while len(self.recent) > 2:
+                self.recent.popleft()
+            result = self._estimate(1)
+        self.recent.clear()
+        self.embeddings.clear()
+        self.state = None
+        return result
+
+    @torch.no_grad()
+    def _estimate(self, target: int) -> tuple[int, np.ndarray]:
+        recent = list(self.recent)
+        points = mirror_y(np.stack([p[1] for p in recent]), self.side)
+        visible = np.stack([p[2] for p in recent])
+        fps = self.spec.fps or 30.0
+        tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps)
+        model = self.regressor.model
+        x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None])
+        z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None])[0]  # (1, D)
+        decoder = model.decoder
+        if self.window is None:
+            h, self.state = decoder.lstm(z[None], self.state)
+        else:
+            self.embeddings.append(z[0])
+            h, _ = decoder.lstm(torch.stack(list(self.embeddings))[None])
+        force = self.regressor.denormalise_force(decoder.heads(h[0, -1])).numpy().astype(np.float64)
+        return recent[target][0], mirror_y(force, self.side)
+
+
+class StreamingForceEstimator:
+    """Frame-by-frame force estimation from a live rectified stereo source (see the module docstring).
+
+    `push(left, right, stamp_ns)` (BGR uint8 images) -> a `ForceEstimate` of an earlier frame, or None
+    while the pipeline fills; `flush()` returns what is still in it, and the next push starts a new
+    stream. `engine.clock` holds each stage's wall time and the CPU time of the thread that ran it."""
+
+    def __init__(self, ckpt: str | Path, camera: PinholeCamera, baseline_mm: float, prompt: str | Prompt,
+                 options: EngineOptions | None = None, up: np.ndarray | None = None,
+                 window: int | None = CLIP_FRAMES, pipelined: bool = False):
+        self.regressor, self.spec = load_force_model(ckpt)
+        self.camera, self.baseline_mm, self.up = camera, float(baseline_mm), up
+        self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
+        self.options, self.window, self.pipelined = options or EngineOptions(), window, pipelined
+        self._pool: ThreadPoolExecutor | None = None
+        self._finished_clock = None
+        self._reset()
+
+    def _reset(self) -> None:
+        self.engine = FrameEngine(self.camera, self.baseline_mm, self.prompt, self.options, up=self.up)
+        self.model: StreamingForceModel | None = None
+        self.frames = 0
+        self._pending: tuple[ImageStages, np.ndarray, int] | None = None
+
+    @property
+    def frame(self):
+        """The object frame, fixed on the first frame of the stream."""
+        return self.engine.frame
+
+    def _track(self, images: ImageStages, left: np.ndarray, stamp_ns: int) -> tuple[int, np.ndarray] | None:
+        result = self.engine.track(self.engine.frames, stamp_ns, left, images)
+        if self.engine.offline_tracker:
+            raise VisionForceError(f"tracker '{self.options.tracker}' is offline (whole clip): not for streaming")
+        if self.model is None:
+            self.model = StreamingForceModel(self.regressor, self.spec, self.frame.rotation, self.frame.origin,
+                                             self.window)
+        t = self.engine.clock.now()
+        estimate = self.model.push(stamp_ns, self.frame.to_object(result.points_mm), result.visible)
+        self.engine.clock.add("force", t)
+        return estimate
+
+    def push(self, left: np.ndarray, right: np.ndarray, stamp_ns: int) -> ForceEstimate | None:
+        t0 = time.perf_counter()
+        first = self.frames == 0
+        self.frames += 1
+        if not self.pipelined:
+            result = self._track(self.engine.image_stages(left, right, first), left, stamp_ns)
+        else:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="vf-image-stages")
+            future = self._pool.submit(self.engine.image_stages, left, right, first)
+            result = self._track(*self._pending) if self._pending is not None else None
+            self._pending = (future.result(), left, stamp_ns)
+        return None if result is None else ForceEstimate(result[0], result[1], time.perf_counter() - t0)
+
+    def flush(self) -> list[ForceEstimate]:
+        """The estimates still in the pipeline at the end of a stream, in frame order."""
+        out = []
+        t0 = time.perf_counter()
+        if self._pending is not None:
+            result = self._track(*self._pending)
+            if result is not None:
+                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+        if self.model is not None:
+            result = self.model.flush()
+            if result is not None:
+                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+        self._finished_clock = self.engine.clock
+        self._reset()
+        return out
+
+    @property
+    def clock(self):
+        """Stage times of the current stream, or of the one `flush` ended when none has started."""
+        return self.engine.clock if self.frames or self._finished_clock is None else self._finished_clock
+
+    @property
+    def stage_seconds(self) -> dict[str, float]:
+        return dict(self.clock.seconds)
+
+    @property
+    def stage_cpu_seconds(self) -> dict[str, float]:
+        return dict(self.clock.cpu_seconds)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None

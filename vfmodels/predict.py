@@ -1,0 +1,197 @@
+"""Force estimation on recordings without a force sensor (the paper's in vivo case), offline.
+
+`predict_recording` (`vfdata predict`) runs the per-frame engine over a recording (depth, tissue
+mask, cloud, object frame, tracks: `vfdata.engine`), keeps the derived recording beside its outputs,
+turns the tracks into forces with the trained model, and writes
+- `<id>.force.mcap`: `/force/estimate` (WrenchStamped in the object frame `tissue_object`, N) and the
+  object frame on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
+- `<id>.force.png`: Fx, Fy, Fz against the frame index, with the measured force when there is one;
+- `<id>.overlay.mp4`: the paper's Fig. 8, the force drawn on the left image at the tissue origin.
+
+Without an ECM pose (gravity unknown) the object frame's X axis is arbitrary: the image's up made
+perpendicular to the tissue axis Z (`vfdata.recon.object_frame`), so Fx and Fy are meaningful only up
+to that choice; the output metadata says which (`x_axis`).
+
+The model is causal: frame t's force uses frames up to t (and t+1 for its central-difference
+velocity). By default the LSTM runs from a zero state over the last `window` = 16 frames (the clip
+length it was trained on); `window=None` carries the state over the whole recording instead.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from vfdata.clips.datamodule import spec_from_checkpoint_hparams
+from vfdata.clips.spec import ClipSpec
+from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.errors import InputError, OutputExistsError
+from vfdata.processing import ProcessOptions, process_recording
+from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recording import Recording, layout
+from vfdata.recording.derived import Tracks, read_tracks, write_force_estimate
+from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
+from vfmodels.regressor import ForceRegressor, read_checkpoint
+from vfmodels.reports.figures import plot_force_series
+
+CLIP_FRAMES = 16
+
+
+# ---- the model -----------------------------------------------------------------------------------
+
+
+def load_force_model(ckpt: str | Path) -> tuple[ForceRegressor, ClipSpec]:
+    """The trained point regressor (eval mode, CPU) and the ClipSpec it was trained with."""
+    regressor = ForceRegressor.load(ckpt)
+    if regressor.model.input_key != "tokens":
+        raise InputError(ckpt, f"{type(regressor.model).__name__} takes {regressor.model.input_key}, not tracked "
+                               "points: prediction runs the point-based models (visionforce, proposed, ablations)")
+    spec = spec_from_checkpoint_hparams(read_checkpoint(ckpt).get("datamodule_hyper_parameters") or {}, Path(ckpt))
+    if spec.input != "tracks":
+        raise InputError(ckpt, f"the model was trained on '{spec.input}' inputs, not tracked points")
+    if regressor.model.config.get("in_features", spec.channels) != spec.channels:
+        raise InputError(ckpt, f"model takes {regressor.model.config['in_features']} features per point, its "
+                               f"clip spec gives {spec.channels} ({spec.features})")
+    return regressor, spec
+
+
+@torch.no_grad()
+def frame_embeddings(regressor: ForceRegressor, tokens: np.ndarray, valid: np.ndarray, batch: int = 256
+                     ) -> torch.Tensor:
+    """Per-frame set embeddings z_t (T, D) (frames are independent before the LSTM, so they are
+    batched freely)."""
+    model = regressor.model
+    out = []
+    for start in range(0, len(tokens), batch):
+        x = torch.from_numpy(np.ascontiguousarray(tokens[start:start + batch]))[None]
+        m = torch.from_numpy(np.ascontiguousarray(valid[start:start + batch]))[None]
+        out.append(model.encode_frames(regressor.normalise_input(x), m)[0])
+    return torch.cat(out) if out else torch.zeros(0, model.config.get("dim", 64))
+
+
+@torch.no_grad()
+def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int | None = CLIP_FRAMES) -> np.ndarray:
+    """Forces (T, 3) in N from per-frame embeddings (T, D): frame t from the LSTM run over frames
+    max(0, t - window + 1)..t from a zero state (window None: one run over everything)."""
+    decoder = regressor.model.decoder
+    if window is None or len(z) <= window:
+        h, _ = decoder.lstm(z[None])
+        return regressor.denormalise_force(decoder.heads(h[0])).numpy()
+    t = len(z)  # all windows at once: (T, window, D)
+    index = np.arange(t)[:, None] + np.arange(-window + 1, 1)[None, :]
+    h, _ = decoder.lstm(z[torch.from_numpy(np.clip(index, 0, None))])
+    # Frames 0..window-2 have shorter histories: their windows start at frame 0 and repeat it; run
+    # them exactly instead, from the one full run over the first window.
+    out = decoder.heads(h[:, -1])
+    head, _ = decoder.lstm(z[None, :window])
+    out[: window - 1] = decoder.heads(head[0, : window - 1])
+    return regressor.denormalise_force(out).numpy()
+
+
+def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = CLIP_FRAMES
+                       ) -> tuple[np.ndarray, float]:
+    """A whole recording's tracks -> (forces (T, 3) N in the object frame, the side it was read from:
+    -1 when `spec.canonical_side` mirrored it)."""
+    points, visible = tracks.points_object_mm, tracks.visible
+    side = recording_side(spec, points[0], visible[0]) if len(points) else 1.0
+    keep = top_bottom(points[0]) if spec.subset == "top_bottom_20" and len(points) else None
+    tokens, valid = point_tokens(spec, mirror_y(points, side), visible, tracks.times_ns,
+                                 (tracks.frame.rotation, tracks.frame.origin), keep)
+    z = frame_embeddings(regressor, tokens, valid)
+    return mirror_y(windowed_forces(regressor, z, window), side), side
+
+
+# ---- offline pipeline ----------------------------------------------------------------------------
+
+
+@dataclass
+class PredictResult:
+    force_mcap: Path
+    plot: Path
+    video: Path | None
+    processed: Path
+    frames: int
+    force_fps: float  # model frames/s (tokens + encoder + LSTM), measured
+    stage_fps: dict[str, float]
+    up_known: bool
+
+
+def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
+    stem = src.name.removesuffix(".mcap")
+    paths = {"force": out_dir / f"{stem}.force.mcap", "plot": out_dir / f"{stem}.force.png",
+             "processed": out_dir / f"{stem}.predict.processed.mcap"}
+    if video:
+        paths["video"] = out_dir / f"{stem}.overlay.mp4"
+    return paths
+
+
+def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | None = None,
+                      options: ProcessOptions | None = None, window: int | None = CLIP_FRAMES, video: bool = True,
+                      progress: bool = True, overwrite: bool = False, reuse_processed: bool = True) -> PredictResult:
+    """The whole pipeline on a recording MCAP (force channel and ECM pose not needed). Existing
+    outputs are refused unless `overwrite`; an existing `<id>.predict.processed.mcap` (the tracks of
+    an earlier run) is reused unless `reuse_processed` is False."""
+    src = Path(src)
+    if not src.is_file():
+        raise InputError(src, "recording not found")
+    regressor, spec = load_force_model(ckpt)
+    out_dir = Path(out_dir) if out_dir is not None else src.parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = output_paths(src, out_dir, video)
+    for key in ("force", "plot", "video"):
+        if key in paths and paths[key].exists() and not overwrite:
+            raise OutputExistsError(paths[key])
+    options = options or ProcessOptions()
+    options.progress = progress
+    if not (reuse_processed and paths["processed"].is_file()):
+        process_recording(src, paths["processed"], options, overwrite=True)
+    tracks = read_tracks(paths["processed"])
+
+    started = time.perf_counter()
+    force, side = forces_from_tracks(regressor, spec, tracks, window)
+    force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
+    x_axis = ("gravity up made perpendicular to Z (from the ECM pose)" if tracks.metadata.up_known else
+              "arbitrary: the image's up direction made perpendicular to Z (no ECM pose)")
+    meta = {"stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
+            "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
+            "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
+    force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite)
+    with Recording.open(src) as rec:
+        measured = rec.force_at(tracks.times_ns)[:, :3] if rec.has(layout.WRENCH) else None
+        stem = src.name.removesuffix(".mcap")
+        plot = plot_force_series(force, paths["plot"], measured_n=measured,
+                                 title=f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})")
+        video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress) if video else None
+    return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
+                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known)
+
+
+def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,
+                        measured_object_n: np.ndarray | None, progress: bool = True) -> Path:
+    """The overlay video of a recording: the estimated (and measured) force at the object origin."""
+    frame: ObjectFrame = tracks.frame
+    force_cam = force_to_camera(force_object_n, frame.rotation)
+    measured_cam = None if measured_object_n is None else force_to_camera(measured_object_n, frame.rotation)
+    camera = rec.camera
+    scale = overlay_scale(force_cam if measured_cam is None else np.concatenate([force_cam, measured_cam]),
+                          camera.width)
+    origin_uv = tuple(camera.project(frame.origin[None])[0])
+    times = tracks.times_ns
+    fps = 1e9 / float(np.median(np.diff(times))) if len(times) > 1 else 30.0
+    with OverlayVideo(path, fps) as writer:
+        for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
+            image = rec.rectified_frame(rec.frame_index_at(int(times[i]))).left
+            label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"
+            writer.write(draw_force_overlay(image, origin_uv, force_cam[i], scale, label,
+                                            None if measured_cam is None else measured_cam[i]))
+    return writer.path
+
+
+__all__ = ["CLIP_FRAMES", "PredictResult", "forces_from_tracks", "frame_embeddings",
+           "load_force_model", "predict_recording", "windowed_forces", "write_overlay_video"]

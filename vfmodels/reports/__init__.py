@@ -1,0 +1,1 @@
+"""Reports of experiments: `tables` (text) and `figures` (PNG)."""

@@ -1,0 +1,114 @@
+"""Train, test and run the force models from YAML configs: Lightning's CLI, set up for VisionForce.
+
+    python train.py fit --config configs/visionforce.yaml
+    python train.py test --config configs/visionforce.yaml --ckpt_path best
+    python train.py predict --config configs/visionforce.yaml --ckpt_path best
+
+`predict` writes `/force/estimate` for each recording of the predict split (the test split unless
+`--data.predict_split` says otherwise) into `<id>.force.mcap` beside the recording, or in
+`--prediction_writer.output_dir`; an existing file is kept unless `--prediction_writer.overwrite true`.
+
+Every run lives in `trainer.default_root_dir` (e.g. runs/visionforce): checkpoints/ (best by
+val/loss, and last.ckpt), csv/version_N/metrics.csv, tb/version_N/ (TensorBoard) and the resolved
+config. `--ckpt_path best` also works in a later process: it is looked up in that run's checkpoints/.
+See docs/models.md (configs, ablations, baselines, multi-GPU/multi-node).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from lightning.pytorch import LightningDataModule
+from lightning.pytorch.cli import LightningCLI
+
+from vfdata.errors import InputError, VisionForceError
+from vfmodels.checkpoint import ResumableCheckpoint
+from vfmodels.epoch_timer import EpochTimer
+from vfmodels.prediction_writer import ForceEstimateWriter
+from vfmodels.regressor import ForceRegressor, read_checkpoint
+
+DESCRIPTION = ("VisionForce: train, test and run the force models (Set Transformer-LSTM on tracked tissue "
+               "points, and the baselines) on processed recordings; configs in configs/, docs in docs/models.md.")
+
+
+def best_checkpoint(dirpath: str | Path) -> Path:
+    """The best checkpoint of a finished run: the one its ModelCheckpoint recorded in last.ckpt (by
+    val/loss), else the only or lowest-loss *.ckpt other than last.ckpt in `dirpath`."""
+    dirpath = Path(dirpath)
+    last = dirpath / "last.ckpt"
+    if last.is_file():
+        for key, value in read_checkpoint(last).get("callbacks", {}).items():
+            # "ModelCheckpoint{...}" in runs from before ResumableCheckpoint.
+            if key.startswith(("ModelCheckpoint", "ResumableCheckpoint")) and value.get("best_model_path"):
+                best = Path(value["best_model_path"])
+                if best.is_file():
+                    return best
+                if (dirpath / best.name).is_file():  # the run folder was moved
+                    return dirpath / best.name
+    candidates = [p for p in dirpath.glob("*.ckpt") if p.name != "last.ckpt"]
+    if not candidates:
+        raise InputError(dirpath, "no checkpoint to use as 'best' (train first, or pass --ckpt_path FILE)")
+
+    def val_loss(p: Path) -> float:
+        try:
+            return float(p.stem.rpartition("val_loss")[2])
+        except ValueError:
+            return float("inf")
+
+    return min(candidates, key=val_loss)
+
+
+class ForceCLI(LightningCLI):
+    def add_arguments_to_parser(self, parser) -> None:
+        parser.description = DESCRIPTION
+        # Keep the checkpoint with the lowest validation loss, and last.ckpt after every epoch for resuming.
+        parser.add_lightning_class_args(ResumableCheckpoint, "checkpoint")
+        # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
+        parser.add_lightning_class_args(ForceEstimateWriter, "prediction_writer")
+        # time/epoch_s and time/epoch_cpu_s in the logs (a run's wall time survives resuming).
+        parser.add_lightning_class_args(EpochTimer, "epoch_timer")
+        parser.set_defaults({
+            "checkpoint.monitor": "val/loss",
+            "checkpoint.mode": "min",
+            "checkpoint.save_last": True,
+            "checkpoint.filename": "epoch{epoch:03d}-val_loss{val/loss:.5f}",
+            "checkpoint.auto_insert_metric_name": False,
+            "trainer.max_epochs": 60,
+            "trainer.default_root_dir": "runs/force",
+        })
+        parser.link_arguments(
+            "trainer.default_root_dir", "checkpoint.dirpath", compute_fn=lambda root: str(Path(root) / "checkpoints")
+        )
+
+    def before_instantiate_classes(self) -> None:
+        # CSV and TensorBoard logs in the run folder unless the config names its own loggers.
+        cfg = self.config[self.subcommand] if self.subcommand else self.config
+        if cfg.trainer.logger in (None, True):
+            root = cfg.trainer.default_root_dir
+            cfg.trainer.logger = [
+                {"class_path": "lightning.pytorch.loggers.CSVLogger", "init_args": {"save_dir": root, "name": "csv"}},
+                {"class_path": "lightning.pytorch.loggers.TensorBoardLogger",
+                 "init_args": {"save_dir": root, "name": "tb"}},
+            ]
+
+    def _resolve_best(self) -> None:
+        kwargs = self.config_init[self.subcommand]
+        callback = self.trainer.checkpoint_callback
+        if kwargs.get("ckpt_path") == "best" and callback is not None and not callback.best_model_path:
+            kwargs["ckpt_path"] = str(best_checkpoint(callback.dirpath))
+
+    before_validate = before_test = before_predict = _resolve_best
+
+
+def make_cli(args: list[str] | None = None, run: bool = True) -> ForceCLI:
+    return ForceCLI(ForceRegressor, LightningDataModule, subclass_mode_data=True,
+                    save_config_kwargs={"overwrite": True}, args=args, run=run)
+
+
+def main(args: list[str] | None = None) -> None:
+    try:
+        make_cli(args)
+    except VisionForceError as exc:
+        print(f"train.py: error: {exc}", file=sys.stderr)
+        sys.exit(1)
