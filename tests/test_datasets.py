@@ -316,3 +316,25 @@ def test_rgb_clips_need_only_the_recording(tmp_path):
     rgb = clips(entries, input="rgb", image_size=32, clip_frames=8)
     clip = rgb[0]
     assert clip["images"].shape == (8, 3, 32, 32) and clip["force"].shape == (8, 3)
+
+
+def test_mirror_augmentation_flips_training_clips_only(dataset_root):
+    _, manifest = dataset_root
+    entries = list(load_manifest(manifest).entries)[:1]
+    spec = ClipSpec(features="disp_vel", mirror_augment=True)
+    plain = ForceClipDataset(entries, spec, progress=False)
+    torch.manual_seed(0)
+    augmented = ForceClipDataset(entries, spec, progress=False, augment=True)
+    sides = []
+    for _ in range(20):
+        item, reference = augmented[1], plain[1]
+        side = float(item["side"])
+        sides.append(side)
+        torch.testing.assert_close(item["tokens"][..., 1::3], side * reference["tokens"][..., 1::3])
+        torch.testing.assert_close(item["tokens"][..., 0::3], reference["tokens"][..., 0::3])
+        torch.testing.assert_close(item["force"][:, 1], side * reference["force"][:, 1])
+    assert set(sides) == {1.0, -1.0}
+    assert all(float(plain[1]["side"]) == 1.0 for _ in range(5))  # without augment: never mirrored
+    dm = ForceDataModule(str(manifest), spec=spec, progress=False)
+    dm.setup("fit")
+    assert dm.datasets["train"].augment and not dm.datasets["val"].augment

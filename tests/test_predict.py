@@ -120,10 +120,11 @@ def test_point_tokens_match_the_training_features():
         point_tokens(ClipSpec(frame="camera"), points, visible)
 
 
-def _regressor(seed: int = 0) -> ForceRegressor:
+def _regressor(seed: int = 0, in_features: int = 6) -> ForceRegressor:
     torch.manual_seed(seed)
-    reg = ForceRegressor(SetTransformerLSTM(in_features=6, dim=32, heads=4, inducing_points=8, lstm_hidden=48))
-    reg.set_normalisation(torch.zeros(6), torch.full((6,), 10.0), torch.tensor([0.1, -0.2, 0.5]),
+    reg = ForceRegressor(SetTransformerLSTM(in_features=in_features, dim=32, heads=4, inducing_points=8,
+                                            lstm_hidden=48))
+    reg.set_normalisation(torch.zeros(in_features), torch.full((in_features,), 10.0), torch.tensor([0.1, -0.2, 0.5]),
                           torch.tensor([1.0, 2.0, 0.5]))
     return reg.eval()
 
@@ -183,13 +184,15 @@ def test_canonical_side_mirrors_the_tracks_in_and_the_force_back_out():
 
 
 @pytest.mark.parametrize("window", [8, None])
-@pytest.mark.parametrize("subset", ["all", "top_bottom_20", "canonical_side"])
+@pytest.mark.parametrize("subset", ["all", "top_bottom_20", "canonical_side", "disp_vel", "ref_disp_vel"])
 def test_streaming_model_reproduces_the_offline_forces(window, subset):
-    reg = _regressor(1)
+    reg = _regressor(1, in_features=9 if subset == "ref_disp_vel" else 6)
     points, visible = _tracks(frames=25)
+    visible[0, :5] = False  # points first seen later: displacements start where each is first seen
     if subset == "canonical_side":
         points = points - np.array([0.0, 30.0, 0.0])
-    spec = ClipSpec(canonical_side=True) if subset == "canonical_side" else ClipSpec(subset=subset)
+    spec = (ClipSpec(canonical_side=True) if subset == "canonical_side" else
+            ClipSpec(features=subset) if "disp" in subset else ClipSpec(subset=subset))
     offline = _forces(reg, spec, points, visible, window=window)
     stream = StreamingForceModel(reg, spec, np.eye(3), np.zeros(3), window=window)
     stamps = np.arange(25) * 33_333_333
@@ -333,3 +336,19 @@ def test_predict_recording_and_streaming_agree_on_a_simulated_recording(tmp_path
         assert [e.stamp_ns for e in estimates] == list(times)
         np.testing.assert_allclose(np.stack([e.force_n for e in estimates]), force, rtol=1e-3, atol=1e-3)
         assert set(live.stage_seconds) >= {"depth", "mask", "cloud", "tracking", "force"}
+
+
+def test_displacement_tokens_and_the_mirror():
+    points, visible = _tracks(frames=6, n=10)
+    visible[:2, 0] = False
+    tokens, valid = point_tokens(ClipSpec(features="ref_disp_vel"), points, visible)
+    np.testing.assert_allclose(tokens[3, 1:, 3:6][valid[3, 1:]], (points[3, 1:] - points[0, 1:])[valid[3, 1:]],
+                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(tokens[4, 0, :3], points[2, 0], rtol=1e-5)  # point 0 is first seen at frame 2
+    from vfdata.clips.tokens import mirror_tokens
+
+    flipped = mirror_tokens(tokens)
+    np.testing.assert_allclose(flipped[..., 1::3], -tokens[..., 1::3])
+    np.testing.assert_allclose(flipped[..., 0::3], tokens[..., 0::3])
+    with pytest.raises(VisionForceError, match="mirror_augment"):
+        ClipSpec(frame="camera", mirror_augment=True)

@@ -54,10 +54,15 @@ class StreamingForceModel:
         self.state = None  # LSTM (h, c) when window is None
         self.keep: np.ndarray | None = None  # top/bottom subset, fixed on the first frame
         self.side = 1.0  # the y mirror (`ClipSpec.canonical_side`), fixed on the first frame
+        self.reference: np.ndarray | None = None  # each point's first visible position (displacements)
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
-        self.recent.append((int(stamp_ns), np.asarray(points_object_mm, dtype=np.float64),
-                            np.asarray(visible, dtype=bool)))
+        points, visible = np.asarray(points_object_mm, dtype=np.float64), np.asarray(visible, dtype=bool)
+        self.recent.append((int(stamp_ns), points, visible))
+        if self.reference is None:
+            self.reference = np.full_like(points, np.nan)
+        first_seen = np.isnan(self.reference).any(axis=1) & visible & np.isfinite(points).all(axis=1)
+        self.reference[first_seen] = points[first_seen]
         if len(self.recent) == 1:
             self.side = recording_side(self.spec, self.recent[0][1], self.recent[0][2])
             if self.spec.subset == "top_bottom_20":
@@ -77,6 +82,7 @@ class StreamingForceModel:
         self.recent.clear()
         self.embeddings.clear()
         self.state = None
+        self.reference = None
         return result
 
     @torch.no_grad()
@@ -85,7 +91,9 @@ class StreamingForceModel:
         points = mirror_y(np.stack([p[1] for p in recent]), self.side)
         visible = np.stack([p[2] for p in recent])
         fps = self.spec.fps or 30.0
-        tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps)
+        reference = mirror_y(self.reference, self.side)
+        tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps,
+                                     reference_mm=reference)
         model = self.regressor.model
         x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None])
         z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None])[0]  # (1, D)

@@ -62,7 +62,8 @@ class ForceDataModule(L.LightningDataModule):
 
     def dataset(self, split: str) -> ForceClipDataset:
         if split not in self.datasets:
-            data = ForceClipDataset(self.manifest.split(split), self.spec, self.cache_dir, self.progress)
+            data = ForceClipDataset(self.manifest.split(split), self.spec, self.cache_dir, self.progress,
+                                    augment=split == "train")
             if len(data) == 0:
                 raise InputError(self.manifest.path, f"the '{split}' recordings are shorter than one clip "
                                                      f"({self.spec.clip_frames} frames)")

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from vfdata.clips.decode import Decoded, decode_recording
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import clip_starts, frame_rate, segments
+from vfdata.clips.tokens import clip_starts, frame_rate, mirror_tokens, segments
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry, load_manifest
 
@@ -36,11 +36,12 @@ class ForceClipDataset(Dataset):
     """Clips of the given manifest entries, made as `spec` says (see the module docstring)."""
 
     def __init__(self, recordings: list[ManifestEntry], spec: ClipSpec | None = None,
-                 cache_dir: str | Path | None = None, progress: bool = True):
+                 cache_dir: str | Path | None = None, progress: bool = True, augment: bool = False):
         if isinstance(recordings, (str, Path)):
             raise TypeError("ForceClipDataset takes manifest entries; for a manifest file use "
                             "ForceClipDataset.from_manifest(path, split=...)")
         self.spec = spec or ClipSpec()
+        self.augment = augment  # training only: the spec's augmentations (mirror_augment) are applied
         self.entries = list(recordings)
         self.recordings: list[Decoded] = [
             decode_recording(e, self.spec, cache_dir)
@@ -84,6 +85,10 @@ class ForceClipDataset(Dataset):
             item["depth"] = item["depth"].float()
         if d.valid is not None:
             item["valid"] = torch.from_numpy(np.ascontiguousarray(d.valid[window]))
+        if self.augment and self.spec.mirror_augment and torch.rand(()) < 0.5:
+            item["tokens"] = torch.from_numpy(mirror_tokens(item["tokens"].numpy()))
+            item["force"] = item["force"] * torch.tensor([1.0, -1.0, 1.0])
+            item["side"] = -item["side"]
         return item
 
     def normalisation(self) -> dict[str, torch.Tensor]:

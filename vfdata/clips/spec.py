@@ -12,10 +12,10 @@ from vfdata.errors import VisionForceError
 Input = Literal["tracks", "cloud", "rgb", "depth"]
 Source = Literal["processed", "ground_truth"]
 Frame = Literal["object", "camera"]
-Features = Literal["pos_vel", "pos", "vel"]
+Features = Literal["pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel"]
 Subset = Literal["all", "top_bottom_20"]
 
-FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3}
+FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "ref_disp_vel": 9}
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 
@@ -30,7 +30,10 @@ class ClipSpec:
         source: processed (the derived MCAPs of `vfdata process`) or ground_truth (the simulator's
             true material points, for developing models before tracking).
         frame: object (the object-centred frame, default) or camera (the left camera frame).
-        features: per-point channels: pos_vel (position mm + velocity mm/s), pos or vel.
+        features: per-point channels, each a 3-vector: pos_vel (position mm + velocity mm/s, the
+            paper's), pos, vel, disp_vel (displacement from the point's position on the recording's
+            first frame, mm, + velocity: deformation, not where the point is) or ref_disp_vel (that
+            first-frame position, the displacement and the velocity).
         subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
         clip_frames: frames per clip (T).
         stride: frames between clip starts.
@@ -41,6 +44,9 @@ class ClipSpec:
         seed: seed of the point draws.
         canonical_side: mirror across the object's XZ plane every recording whose first frame shows
             the y < 0 flank (y of points and force negated); beyond the paper.
+        mirror_augment: in training, mirror each clip across the object's XZ plane with probability
+            1/2 (the y of every token vector and Fy negated): the tube hanging under gravity is
+            symmetric about that plane, so a mirrored clip is a valid clip; beyond the paper.
     """
 
     input: Input = "tracks"
@@ -56,6 +62,7 @@ class ClipSpec:
     fps: float | None = None
     seed: int = 0
     canonical_side: bool = False
+    mirror_augment: bool = False
 
     def __post_init__(self) -> None:
         choices = {"input": INPUT_KEYS, "source": ("processed", "ground_truth"), "frame": ("object", "camera"),
@@ -65,9 +72,10 @@ class ClipSpec:
                 raise VisionForceError(f"{name} '{getattr(self, name)}' is not one of {', '.join(allowed)}")
         if self.clip_frames < 1 or self.stride < 1:
             raise VisionForceError("clip_frames and stride must be positive")
-        if self.canonical_side and (self.input != "tracks" or self.frame != "object"):
-            raise VisionForceError("canonical_side mirrors tracked points in the object frame "
-                                   "(input tracks, frame object)")
+        for name in ("canonical_side", "mirror_augment"):
+            if getattr(self, name) and (self.input != "tracks" or self.frame != "object"):
+                raise VisionForceError(f"{name} mirrors tracked points in the object frame (input tracks, frame "
+                                       "object): the camera frame does not know the object's plane of symmetry")
 
     @property
     def input_key(self) -> str:

@@ -81,17 +81,38 @@ def velocities(points_mm: np.ndarray, runs: list[tuple[int, int]], fps: float) -
     return v
 
 
+def reference_positions(points_mm: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(N, 3) each point's position on the first frame where it is valid (NaN if never)."""
+    p = np.asarray(points_mm, dtype=np.float64)
+    ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
+    first = np.argmax(ok, axis=0)
+    ref = p[first, np.arange(p.shape[1])]
+    ref[~ok.any(axis=0)] = np.nan
+    return ref
+
+
 def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[int, int]], fps: float,
-                   features: str) -> tuple[np.ndarray, np.ndarray]:
-    """Tokens (F, N, C) float32 (C = 6 for pos_vel, else 3) and valid (F, N): invalid or non-finite
-    points are zeroed and marked invalid; velocities of points next to an invalid sample are too."""
+                   features: str, reference_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Tokens (F, N, C) float32 and valid (F, N) (`ClipSpec.features`: C = 3 per 3-vector). Invalid
+    or non-finite points are zeroed and marked invalid; velocities of points next to an invalid
+    sample are too. Displacements are from `reference_mm` (N, 3), by default each point's first valid
+    position in `points_mm`."""
+    if features not in ("pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel"):
+        raise VisionForceError(f"unknown features '{features}' (choose from pos_vel, pos, vel, disp_vel, ref_disp_vel)")
     p = np.asarray(points_mm, dtype=np.float64)
     ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
     p = np.where(ok[..., None], p, 0.0)
     parts = []
-    if features in ("pos_vel", "pos"):
+    if "disp" in features:
+        ref = reference_positions(points_mm, valid) if reference_mm is None else np.asarray(reference_mm, float)
+        ok = ok & np.isfinite(ref).all(axis=-1)[None]
+        ref = np.nan_to_num(ref)
+        if features.startswith("ref"):
+            parts.append(np.broadcast_to(ref, p.shape))
+        parts.append(p - ref)
+    elif features in ("pos_vel", "pos"):
         parts.append(p)
-    if features in ("pos_vel", "vel"):
+    if features.endswith("vel"):
         parts.append(velocities(p, runs, fps))
         # a velocity from a neighbour the tracker lost is meaningless: use only fully seen stencils
         ok_prev, ok_next = ok.copy(), ok.copy()
@@ -99,10 +120,15 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
             ok_prev[start + 1:stop] = ok[start:stop - 1]
             ok_next[start:stop - 1] = ok[start + 1:stop]
         ok = ok & ok_prev & ok_next
-    if not parts:
-        raise VisionForceError(f"unknown features '{features}' (choose from pos_vel, pos, vel)")
     tokens = np.concatenate(parts, axis=-1)
     return np.where(ok[..., None], tokens, 0.0).astype(np.float32), ok
+
+
+def mirror_tokens(tokens: np.ndarray) -> np.ndarray:
+    """Tokens (..., C) of 3-vectors in the object frame mirrored across its XZ plane (every y negated)."""
+    flip = np.ones(tokens.shape[-1], dtype=tokens.dtype)
+    flip[1::3] = -1
+    return tokens * flip
 
 
 def top_bottom(reference_mm: np.ndarray, fraction: float = TOP_BOTTOM_FRACTION) -> np.ndarray:
@@ -135,25 +161,29 @@ def recording_side(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.nda
 
 def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
                  object_frame: tuple[np.ndarray, np.ndarray] | None = None, keep: np.ndarray | None = None,
-                 fps: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 fps: float | None = None, reference_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tracks (F, N, 3) in the object frame (mm, already mirrored by the caller when it should be) +
     visibility (F, N) -> tokens (F, N', C) float32 and valid (F, N') as `spec` says. `times_ns` cuts
     velocities at gaps (None: one gap-free run); the camera frame needs `object_frame` (rotation (3, 3)
     with the object axes as columns, origin (3,) mm); `keep` fixes the top/bottom subset (default:
-    chosen on the first frame)."""
+    chosen on the first frame); `reference_mm` (N, 3) the positions displacements start from (default:
+    each point's first valid position in these frames; a stream passes the recording's first frame)."""
     points = np.asarray(points_object_mm, dtype=np.float64)
     visible = np.asarray(visible, dtype=bool)
+    reference = None if reference_mm is None else np.asarray(reference_mm, dtype=np.float64)
     if spec.subset == "top_bottom_20":
         keep = top_bottom(points[0], TOP_BOTTOM_FRACTION) if keep is None else keep
         points, visible = points[:, keep], visible[:, keep]
+        reference = None if reference is None else reference[keep]
     if spec.frame == "camera":
         if object_frame is None:
             raise VisionForceError("camera-frame tokens need the object frame's rotation and origin")
         rotation, origin = object_frame
         points = points @ np.asarray(rotation).T + np.asarray(origin)
+        reference = None if reference is None else reference @ np.asarray(rotation).T + np.asarray(origin)
     runs = segments(times_ns) if times_ns is not None else [(0, len(points))]
     rate = fps or spec.fps or (frame_rate(times_ns) if times_ns is not None else DEFAULT_FPS)
-    return point_features(points, visible, runs, rate, spec.features)
+    return point_features(points, visible, runs, rate, spec.features, reference)
 
 
 def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
