@@ -17,6 +17,13 @@ class Variant:
     table: str = "II"
 
 
+# The project's own pipeline, the default for users: the paper's network on deformation tokens with the
+# tube's mirror symmetry (docs/results.md), and its camera-frame twin for the object-frame claim.
+VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
+    Variant("visionforce", "VisionForce (displacement tokens, mirror symmetry)", "visionforce.yaml", table="I+II"),
+    Variant("visionforce_camera_frame", "VisionForce, camera frame", "visionforce_camera_frame.yaml"),
+)}
+
 # The paper's grid: `proposed` is the paper's method, faithfully; the ablations and baselines around it.
 PAPER_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("proposed", "Proposed (object frame, geometry tracking)", "proposed.yaml", table="I+II"),
@@ -49,8 +56,8 @@ EXTRA_VARIANTS: dict[str, Variant] = {v.name: v for v in (
             tracker="geometry+"),
 )}
 
-ALL_VARIANTS: dict[str, Variant] = {**PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS}
-DEFAULT_VARIANTS: tuple[str, ...] = tuple(PAPER_VARIANTS)
+ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS}
+DEFAULT_VARIANTS: tuple[str, ...] = (*VISIONFORCE_VARIANTS, *PAPER_VARIANTS)
 
 # Derived file name per tracker (a manifest's `processed:` points the datasets at it).
 TRACKER_SUFFIX = {"geometry": ".processed.mcap", "klt": ".klt.mcap", "geometry+": ".geometry_plus.mcap",
