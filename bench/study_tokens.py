@@ -14,7 +14,7 @@ Point sources (the rungs of the attribution ladder):
 - `processed`: the `<id>.processed.mcap` tracks (our depth, mask, object frame and geometry tracker).
 
 Per-point channels (object frame unless `frame=camera`): `p` position, `v` velocity (mm/s, central
-differences as `vfdata.datasets.velocities`), `d` displacement p_t - p_0 from the recording's first frame,
+differences as `vfdata.clips.tokens.velocities`), `d` displacement p_t - p_0 from the recording's first frame,
 `p0` reference position, `z0` its z only, `z0n` its z relative to the frame-0 cloud's z-range (0..1),
 `cyl0` (r0, cos th0, sin th0) around the object's Z axis (th from X = up), `dcyl`/`vcyl` displacement /
 velocity in the local cylindrical basis (radial, tangential, axial), `dclip` p_t - p_{t-15}.
@@ -25,7 +25,7 @@ model with a quadratic per-point map and mean pooling can read), `bins` (mean of
 in bins of reference z x angle around the axis, plus each bin's share of points).
 
 Symmetry: `none`; `mirror` (training copies mirrored across the object's XZ plane: y, vy, Fy negated);
-`canon` (each recording mirrored to the flank its frame 0 shows, `vfdata.datasets.seen_side`, at test too);
+`canon` (each recording mirrored to the flank its frame 0 shows, `vfdata.clips.tokens.seen_side`, at test too);
 `absy` (position channels read |y|, |sin th|; no copies); `rot4` / `rot4m` (training copies rotated by
 90/180/270 deg about Z, forces with them; `m`: and mirrored).
 
@@ -48,7 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vfdata.datasets import load_manifest, seen_side, segments, velocities
+from vfdata.clips.tokens import seen_side, segments, velocities
+from vfdata.manifest import load_manifest
+from vfdata.recording import Recording
+from vfdata.recording.derived import read_tracks
 
 NUM_POINTS = 256
 CLIP = 16
@@ -85,17 +88,13 @@ def _load_source(entry, source: str, force: str, seed: int = 0) -> Rec:
         points = (pts_cam[:, keep].astype(np.float64) - org) @ rot
         valid = np.ones(points.shape[:2], bool) if source == "surface" else vis[:, keep].astype(bool)
     else:
-        from vfdata.predict import read_tracks
-
         path = entry.processed if source == "processed" else entry.processed.with_name(f"{entry.id}.gt.mcap")
         tracks = read_tracks(path)
         times, points, valid = tracks.times_ns, tracks.points_object_mm, tracks.visible
-        rot, org = tracks.rotation, tracks.origin_mm
+        rot, org = tracks.frame.rotation, tracks.frame.origin
     if force == "npy" and source in ("surface", "visible"):
         f = np.load(gt / "force.npy")[:, :3].astype(np.float64)
     else:
-        from vfdata.recording import Recording
-
         with Recording.open(entry.mcap) as rec:
             f = rec.force_at(times)[:, :3].astype(np.float64)
     return Rec(entry.id, entry.split, entry.orientation_deg, times, f, points.astype(np.float32),
@@ -104,7 +103,7 @@ def _load_source(entry, source: str, force: str, seed: int = 0) -> Rec:
 
 def load_preset(data: Path, preset: str, source: str, force: str, cache: Path) -> list[Rec]:
     """All recordings of a preset's manifest for one point source, cached as one npz per recording."""
-    _, entries = load_manifest(data / preset / f"{preset}.manifest.yaml")
+    entries = load_manifest(data / preset / f"{preset}.manifest.yaml").entries
     recs = []
     for e in entries:
         fn = cache / f"{e.id}-{source}-{force}.npz"
