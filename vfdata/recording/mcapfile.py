@@ -191,7 +191,8 @@ class McapFile:
         if chunk.status == "bad-crc" and self.damaged != "serve":
             raise self._refused(chunk, "fails its CRC check")
         if chunk.status == "bad-index":
-            raise self._refused(chunk, "has a message index that disagrees with its records")
+            raise self._refused(chunk, "has a message index that disagrees with its records in log times or counts "
+                                       "(its records may be intact: damaged='skip' indexes them from the records)")
         self._cache[chunk_id] = data
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)

@@ -47,6 +47,7 @@ MESSAGE_FIELDS = MESSAGE_HEAD.size - RECORD_HEAD.size  # the body's bytes before
 CHUNK_FIELDS = struct.Struct("<QQQI")
 # A message index record's head: the record head, channel id, byte length of the (u64, u64) pairs.
 MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")
+MESSAGE_INDEX_HEAD_DTYPE = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("nbytes", "<u4")])
 INDEX_PAIR = 16
 # MESSAGE_HEAD as a numpy record, for many message heads at once (gathered, or built as a table).
 MESSAGE_HEAD_DTYPE = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
@@ -83,6 +84,8 @@ def _self_check() -> None:
           and MESSAGE_HEAD_DTYPE.itemsize == MESSAGE_HEAD.size
           and np.frombuffer(message, MESSAGE_HEAD_DTYPE, 1)[0].tolist() == (Opcode.MESSAGE, len(message) - 9,
                                                                            0x0102, 5, 3, 4)
+          and np.frombuffer(index, MESSAGE_INDEX_HEAD_DTYPE, 1)[0].tolist() == (Opcode.MESSAGE_INDEX, len(index) - 9,
+                                                                                 3, INDEX_PAIR)
           and MESSAGE_INDEX_HEAD.unpack_from(index) == (Opcode.MESSAGE_INDEX, len(index) - 9, 3, INDEX_PAIR)
           and struct.unpack_from("<QQ", index, MESSAGE_INDEX_HEAD.size) == (11, 12))
     if not ok:
