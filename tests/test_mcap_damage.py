@@ -225,19 +225,26 @@ def test_a_message_index_pointing_at_the_wrong_record_is_read_from_the_chunk(pri
     assert any("points at the wrong records" in p for p in Recording.open(path, damaged="skip").problems)
 
 
-def test_a_flipped_summary_length_is_a_named_problem_not_a_memory_error(pristine, tmp_path):
+@pytest.mark.parametrize("summary_crc", [True, False], ids=["with-summary-crc", "without"])
+def test_a_flipped_summary_length_is_a_named_problem_not_a_memory_error(pristine, tmp_path, summary_crc):
+    """The top byte of a chunk index's record length flipped (2**62 bytes): with the summary CRC the
+    CRC notices, without it the length is bounded by the summary; either way the data section is
+    scanned and reads as the original."""
     data = bytearray(pristine.read_bytes())
     footer_at = len(data) - len(MAGIC) - FOOTER_SIZE
     summary_start = int.from_bytes(data[footer_at + 9:footer_at + 17], "little")
     for pos, opcode, _body in iter_records(bytes(data), Path("x"), "s", summary_start, footer_at):
         if opcode == Opcode.CHUNK_INDEX:
-            data[pos + 1 + 7] ^= 0x40  # the top byte of its record length: 2**62 bytes
+            data[pos + 1 + 7] ^= 0x40
             break
+    if not summary_crc:
+        data[footer_at + 25:footer_at + 29] = bytes(4)  # "not computed"
     path = tmp_path / "summary.mcap"
     path.write_bytes(bytes(data))
     rec = Recording.open(path)
     assert any("summary" in p for p in rec.problems)
-    assert read_all(path)["view"] == read_all(pristine)["view"]  # read by a scan of the data section
+    assert read_all(path)["view"] == read_all(pristine)["view"]
+    assert any("summary" in p for p in check_file(path))
 
 
 def _foreign_file(path: Path, channels: list[tuple[str, str, str, bytes]]) -> Path:

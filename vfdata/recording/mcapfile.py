@@ -207,8 +207,7 @@ class McapFile:
         log time. Where they do not, the chunk's records are walked: offsets that were wrong are
         corrected (noted); log times or counts that disagree make the chunk 'bad-index'."""
         chunk = self.index.chunks[chunk_id]
-        data = np.frombuffer(records, np.uint8)
-        if all(_heads_match(data, self.index.messages[c], chunk_id, c) for c in chunk.channels
+        if all(_heads_match(records, self.index.messages[c], chunk_id, c) for c in chunk.channels
                if c in self.index.messages):
             return
         where = f"chunk at byte {chunk.record_offset}"
@@ -284,23 +283,22 @@ class McapFile:
         payload length (in practice one): for fixed-size messages (wrench, pose), decoded with numpy
         one chunk at a time so that memory stays at one chunk's worth."""
         loc = self.index.messages[channel_id]
-        for chunk in np.unique(loc.chunk):
-            sel = loc.in_chunk(int(chunk))
+        for chunk, sel in loc.groups().items():
             if chunk < 0:
                 for i in sel:
                     yield np.frombuffer(bytes(self.payload(channel_id, int(i))), dtype=np.uint8)[None]
                 continue
-            records = np.frombuffer(self.chunk_records(int(chunk)), dtype=np.uint8)
+            records = self.chunk_records(chunk)
             offsets = loc.offset[sel]
-            if (offsets + MESSAGE_HEAD.size > len(records)).any():
+            heads = message_heads(records, offsets)
+            if heads is None:
                 raise FormatError(self.path, "a message runs past the end of its chunk")
-            heads = records[offsets[:, None] + np.arange(MESSAGE_HEAD.size)].view(MESSAGE_HEAD_DTYPE).ravel()
             payload_len = heads["length"].astype(np.int64) - MESSAGE_FIELDS
             for length in np.unique(payload_len):
                 starts = offsets[payload_len == length] + MESSAGE_HEAD.size
                 if length < 0 or starts.max() + length > len(records):
                     raise FormatError(self.path, "a message runs past the end of its chunk")
-                yield records[starts[:, None] + np.arange(length)]
+                yield _rows(records, starts, int(length))
 
     def iter_payloads(self, channel_id: int, start: int = 0, stop: int | None = None):
         """(log_time_ns, payload) of a channel's messages in log-time order."""
@@ -309,17 +307,38 @@ class McapFile:
             yield int(loc.log_time_ns[i]), self.payload(channel_id, i)
 
 
-def _heads_match(data: np.ndarray, loc: MessageLocations, chunk_id: int, channel_id: int) -> bool:
+def message_heads(records: bytes | memoryview, offsets: np.ndarray) -> np.ndarray | None:
+    """The message record heads (MESSAGE_HEAD_DTYPE) at `offsets` in a chunk's records; None where one
+    runs past the end. Records of equal length back to back (a series) are a strided view, no copy."""
+    size = len(records)
+    if not len(offsets):
+        return np.zeros(0, MESSAGE_HEAD_DTYPE)
+    if offsets.min() < 0 or offsets.max() + MESSAGE_HEAD.size > size:
+        return None
+    stride = int(offsets[1] - offsets[0]) if len(offsets) > 1 else MESSAGE_HEAD.size
+    if stride >= MESSAGE_HEAD.size and (np.diff(offsets) == stride).all():
+        return np.ndarray((len(offsets),), MESSAGE_HEAD_DTYPE, records, int(offsets[0]), (stride,))
+    data = np.frombuffer(records, np.uint8)
+    return data[offsets[:, None] + np.arange(MESSAGE_HEAD.size)].view(MESSAGE_HEAD_DTYPE).ravel()
+
+
+def _rows(records: bytes | memoryview, starts: np.ndarray, length: int) -> np.ndarray:
+    """(n, length) uint8 of the bytes at each start: a strided view when the starts are evenly spaced."""
+    stride = int(starts[1] - starts[0]) if len(starts) > 1 else length
+    if stride >= length and (np.diff(starts) == stride).all():
+        return np.ndarray((len(starts), length), np.uint8, records, int(starts[0]), (stride, 1))
+    return np.frombuffer(records, np.uint8)[starts[:, None] + np.arange(length)]
+
+
+def _heads_match(records: bytes | memoryview, loc: MessageLocations, chunk_id: int, channel_id: int) -> bool:
     """Whether the entries of `loc` in this chunk point at message records of `channel_id` with their
     log times, each inside the chunk."""
     sel = loc.in_chunk(chunk_id)
     offsets = loc.offset[sel]
-    if not len(offsets):
-        return True
-    if (offsets < 0).any() or (offsets + MESSAGE_HEAD.size > len(data)).any():
+    heads = message_heads(records, offsets)
+    if heads is None:
         return False
-    heads = data[offsets[:, None] + np.arange(MESSAGE_HEAD.size)].view(MESSAGE_HEAD_DTYPE).ravel()
     length = heads["length"]
     return bool(((heads["opcode"] == Opcode.MESSAGE) & (heads["channel"] == channel_id)
                  & (heads["log_time"] == loc.log_time_ns[sel].astype(np.uint64)) & (length >= MESSAGE_FIELDS)
-                 & (length <= len(data) - offsets - RECORD_HEAD.size)).all())
+                 & (length <= len(records) - offsets - RECORD_HEAD.size)).all())

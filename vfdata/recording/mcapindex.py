@@ -53,8 +53,12 @@ class MessageLocations:
         return len(self.log_time_ns)
 
     def in_chunk(self, chunk_id: int) -> np.ndarray:
-        """Positions (ascending) of the messages in chunk `chunk_id`. Grouped once, in O(N) when the
-        chunks follow one another in time (the usual case), else with one stable sort."""
+        """Positions (ascending) of the messages in chunk `chunk_id`."""
+        return self.groups().get(chunk_id, np.zeros(0, np.int64))
+
+    def groups(self) -> dict[int, np.ndarray]:
+        """Chunk id -> positions (ascending) of its messages, in chunk order. Grouped once, in O(N)
+        when the chunks follow one another in time (the usual case), else with one stable sort."""
         if self._groups is None:
             chunk = self.chunk
             order = (np.arange(len(chunk)) if (np.diff(chunk) >= 0).all()
@@ -62,7 +66,7 @@ class MessageLocations:
             ids, starts = np.unique(chunk[order], return_index=True)
             ends = np.append(starts[1:], len(order))
             self._groups = {int(c): order[s:e] for c, s, e in zip(ids, starts, ends, strict=True)}
-        return self._groups.get(chunk_id, np.zeros(0, np.int64))
+        return self._groups
 
 
 @dataclass
@@ -83,9 +87,12 @@ def merge_locations(times, chunks, offsets) -> MessageLocations:
     times = np.asarray(times, np.int64)
     chunks = np.asarray(chunks, np.int32)
     offsets = np.asarray(offsets, np.int64)
-    # Chunks may overlap in time; file order breaks ties so equal stamps keep their write order.
-    order = np.lexsort((offsets, chunks, times))
-    return MessageLocations(times[order], chunks[order], offsets[order])
+    # Chunks may overlap in time; file order breaks ties so equal stamps keep their write order. Found
+    # in file order, a series written in time order is sorted already (a 1 kHz hour: 0.4 s of lexsort).
+    if not (np.diff(times) > 0).all():
+        order = np.lexsort((offsets, chunks, times))
+        times, chunks, offsets = times[order], chunks[order], offsets[order]
+    return MessageLocations(times, chunks, offsets)
 
 
 class _Entries:
