@@ -20,7 +20,7 @@ from rawfixtures import FRAME_NS, T0_NS, calibration, frames
 
 from vfdata.conversion.raw_folder import camera_infos, stereo_tf
 from vfdata.errors import FormatError
-from vfdata.recording import McapWriter, Recording, layout
+from vfdata.recording import CorruptChunkError, McapWriter, Recording, layout
 from vfdata.recording.inspect import check_file
 from vfdata.recording.mcaprecords import FOOTER_SIZE, MAGIC, RECORD_HEAD, iter_records
 from vfdata.recording.messages import CompressedImage, PoseStamped, WrenchStamped
@@ -195,10 +195,11 @@ def test_a_damaged_image_chunk_is_refused_by_name_and_the_rest_reads(pristine, t
     for i in range(rec.num_frames):
         try:
             rec.frame_images(i)
-        except FormatError as exc:
+        except CorruptChunkError as exc:
             refused.append(i)
-            message = str(exc)
+            message, topics, offset = str(exc), exc.topics, exc.chunk_offset
     assert refused and len(refused) < rec.num_frames
+    assert offset == chunk.record_offset and layout.LEFT_IMAGE in topics
     assert f"chunk at byte {chunk.record_offset}" in message and "CRC" in message and layout.LEFT_IMAGE in message
     skipped = Recording.open(path, damaged="skip")
     assert skipped.num_frames < 12 and any("CRC mismatch" in p for p in skipped.problems)

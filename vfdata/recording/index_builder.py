@@ -10,6 +10,7 @@ was damaged; a valid file read by a scan has none."""
 
 from __future__ import annotations
 
+from array import array
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,7 +19,7 @@ from mcap.records import Channel as ChannelRecord
 from mcap.records import ChunkIndex, Footer, Header, Metadata, MetadataIndex, Schema, Statistics
 
 from vfdata.errors import FormatError
-from vfdata.recording.mcapindex import COMPRESSIONS, Channel, Chunk, McapIndex, _Entries
+from vfdata.recording.mcapindex import COMPRESSIONS, Channel, Chunk, McapIndex, MessageLocations, merge_locations
 from vfdata.recording.mcaprecords import (
     CHUNK_FIELDS,
     DATA_END_SIZE,
@@ -62,6 +63,36 @@ def scan_chunk_records(records: bytes | memoryview, path, where: str, on_definit
     except FormatError as exc:
         return found, exc.problem
     return found, None
+
+
+class _Entries:
+    """Per channel (log time, chunk, offset) of the messages found, as compact arrays."""
+
+    def __init__(self) -> None:
+        self.by_channel: dict[int, tuple[array, array, array]] = {}
+
+    def _columns(self, channel_id: int) -> tuple[array, array, array]:
+        return self.by_channel.setdefault(channel_id, (array("q"), array("q"), array("q")))
+
+    def add(self, channel_id: int, log_time: int, chunk: int, offset: int) -> None:
+        times, chunks, offsets = self._columns(channel_id)
+        times.append(log_time)
+        chunks.append(chunk)
+        offsets.append(offset)
+
+    def extend(self, channel_id: int, log_times, chunk: int, offsets) -> None:
+        times, chunks, at = self._columns(channel_id)
+        times.frombytes(np.asarray(log_times, np.int64).tobytes())
+        chunks.frombytes(np.full(len(log_times), chunk, np.int64).tobytes())
+        at.frombytes(np.asarray(offsets, np.int64).tobytes())
+
+    def counts(self) -> dict[int, int]:
+        return {c: len(v[0]) for c, v in self.by_channel.items() if len(v[0])}
+
+    def locations(self, channel_id: int) -> MessageLocations:
+        columns = self.by_channel.get(channel_id, (array("q"), array("q"), array("q")))
+        return merge_locations(*(np.frombuffer(c, np.int64) if len(c) else np.zeros(0, np.int64)
+                                 for c in columns))
 
 
 class _Builder:

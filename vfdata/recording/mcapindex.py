@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-from array import array
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,33 +92,3 @@ def merge_locations(times, chunks, offsets) -> MessageLocations:
         order = np.lexsort((offsets, chunks, times))
         times, chunks, offsets = times[order], chunks[order], offsets[order]
     return MessageLocations(times, chunks, offsets)
-
-
-class _Entries:
-    """Per channel (log time, chunk, offset) of the messages found, as compact arrays."""
-
-    def __init__(self) -> None:
-        self.by_channel: dict[int, tuple[array, array, array]] = {}
-
-    def _columns(self, channel_id: int) -> tuple[array, array, array]:
-        return self.by_channel.setdefault(channel_id, (array("q"), array("q"), array("q")))
-
-    def add(self, channel_id: int, log_time: int, chunk: int, offset: int) -> None:
-        times, chunks, offsets = self._columns(channel_id)
-        times.append(log_time)
-        chunks.append(chunk)
-        offsets.append(offset)
-
-    def extend(self, channel_id: int, log_times, chunk: int, offsets) -> None:
-        times, chunks, at = self._columns(channel_id)
-        times.frombytes(np.asarray(log_times, np.int64).tobytes())
-        chunks.frombytes(np.full(len(log_times), chunk, np.int64).tobytes())
-        at.frombytes(np.asarray(offsets, np.int64).tobytes())
-
-    def counts(self) -> dict[int, int]:
-        return {c: len(v[0]) for c, v in self.by_channel.items() if len(v[0])}
-
-    def locations(self, channel_id: int) -> MessageLocations:
-        columns = self.by_channel.get(channel_id, (array("q"), array("q"), array("q")))
-        return merge_locations(*(np.frombuffer(c, np.int64) if len(c) else np.zeros(0, np.int64)
-                                 for c in columns))

@@ -23,7 +23,7 @@ from vfdata.calibration import PinholeCamera, RectifiedStereo
 from vfdata.errors import FormatError
 from vfdata.recording import layout
 from vfdata.recording.cdr import CdrError
-from vfdata.recording.mcapfile import CorruptChunkError, McapFile  # noqa: F401 - CorruptChunkError for callers
+from vfdata.recording.mcapfile import McapFile
 from vfdata.recording.messages import (
     CameraInfo,
     CompressedImage,
