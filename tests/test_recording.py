@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import zstandard
 from rawfixtures import FRAME_NS, T0_NS, make_raw
 
 from vfdata.calibration import StereoCalibration
@@ -441,3 +442,75 @@ def test_not_an_mcap(tmp_path, capsys):
 def test_info_reports_rates_and_sync(converted_png):
     text = info_text(converted_png)
     assert "/force_sensor/wrench" in text and "1000.00" in text and "force-to-frame sync" in text
+
+
+# -- the writer's records ------------------------------------------------------------------------------
+def test_every_record_written_is_the_mcap_librarys_own(raw, tmp_path):
+    """Each record of a converted file, read by `mcap`'s StreamReader and written again by the library's
+    record builders, gives the file's bytes, the chunks' records included (the writer packs message
+    records, chunk heads and message indexes itself)."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from vfdata.recording.mcaprecords import MAGIC, record_bytes
+
+    out = _convert(raw, tmp_path / "rec.mcap", chunk_size=16 * 1024)
+    data = out.read_bytes()
+    pos, kinds = len(MAGIC), set()
+    for record in StreamReader(str(out), emit_chunks=True, validate_crcs=True).records:
+        written = record_bytes(record)
+        assert data[pos:pos + len(written)] == written, type(record).__name__
+        pos += len(written)
+        kinds.add(type(record).__name__)
+        if isinstance(record, Chunk):
+            records = breakup_chunk(record, validate_crc=True)
+            inner = b"".join(record_bytes(r) for r in records)
+            chunk_data = record.data if not record.compression else zstandard.decompress(record.data)
+            assert inner == chunk_data
+    assert data[pos:] == MAGIC
+    assert kinds >= {"Header", "Schema", "Channel", "Metadata", "Chunk", "MessageIndex", "DataEnd", "Statistics",
+                     "ChunkIndex", "MetadataIndex", "SummaryOffset", "Footer"}
+
+
+def test_each_series_has_chunks_of_its_own_in_log_time_order(tmp_path):
+    """Force and pose batches written one after the other (as the bag converter does) land in chunks of
+    their own topic, each in log-time order; the data-section CRC holds (validated by `mcap`)."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from vfdata.recording.messages import PoseStamped, WrenchStamped
+    from vfdata.recording.writer import McapWriter
+
+    out = tmp_path / "series.mcap"
+    stamps = T0_NS + np.arange(300) * 1_000_000
+    with McapWriter(out, separate_topics=(layout.WRENCH, layout.ECM_POSE), separate_batch=64) as writer:
+        for lo in range(0, 300, 100):
+            for t in stamps[lo:lo + 100]:
+                writer.write(layout.WRENCH, WrenchStamped(int(t), "ati", (1.0, 2.0, 3.0), (0.0, 0.0, 0.0)))
+            for t in stamps[lo:lo + 100]:
+                writer.write(layout.ECM_POSE, PoseStamped(int(t), "world", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)))
+    chunks = [r for r in StreamReader(str(out), emit_chunks=True, validate_crcs=True).records if isinstance(r, Chunk)]
+    assert len(chunks) == 10
+    for chunk in chunks:
+        messages = [m for m in breakup_chunk(chunk) if type(m).__name__ == "Message"]
+        assert len({m.channel_id for m in messages}) == 1
+        times = [m.log_time for m in messages]
+        assert times == sorted(times)
+    rec = Recording.open(out)
+    np.testing.assert_array_equal(rec.force.times_ns, stamps)
+    np.testing.assert_array_equal(rec.ecm_pose.times_ns, stamps)
+    assert rec._mcap.index.data_section_crc != 0
+
+
+def test_metadata_stays_a_string_map(tmp_path):
+    from mcap.reader import make_reader
+
+    from vfdata.recording.writer import McapWriter
+
+    out = tmp_path / "meta.mcap"
+    with McapWriter(out) as writer:
+        writer.add_metadata("x", {"flag": True, "n": 3, "text": "a"})
+    with open(out, "rb") as f:
+        (record,) = make_reader(f).iter_metadata()
+    assert record.metadata == {"flag": "True", "n": "3", "text": "a"}
+    assert Recording.open(out).metadata_records == {"x": {"flag": "True", "n": "3", "text": "a"}}

@@ -30,6 +30,17 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from vfdata.recording.mcaprecords import (
+    INDEX_PAIR,
+    MESSAGE_FIELDS,
+    MESSAGE_HEAD,
+    MESSAGE_HEAD_DTYPE,
+    MESSAGE_INDEX_HEAD,
+    MESSAGE_INDEX_HEAD_DTYPE,
+    RECORD_HEAD,
+    Opcode,
+    chunk_head_size,
+)
 from vfdata.recording.messages import NS_PER_S
 
 _U32 = struct.Struct("<I")
@@ -405,15 +416,10 @@ def ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
     return kind, [path / Path(name).name for name in info["relative_file_paths"]]
 
 
-# MCAP (mcap.dev/spec). A chunk record is op 0x06, a uint64 length, message start and end times and
-# the uncompressed size (uint64), its CRC (uint32), the compression (uint32 length + string), the
-# records' length (uint64), then the records. A message record is op 0x05, a uint64 length, channel
-# id (uint16), sequence (uint32), log and publish times (uint64), then the data. The summary's chunk
-# indexes point at each chunk's message index records: op 0x07, a uint64 length, channel id (uint16),
-# a uint32 byte length, then (log time, offset into the chunk's records) uint64 pairs.
-_MCAP_MESSAGE, _MCAP_MESSAGE_INDEX = 0x05, 0x07
-_MCAP_CHUNK_FIXED = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 8  # a chunk record's fields besides the compression string
-_MCAP_MESSAGE_FIXED = 2 + 4 + 8 + 8  # a message record's fields before the data
+# MCAP: the record layout is `vfdata.recording.mcaprecords`' (one definition, checked against
+# `mcap.records`). Only uncompressed chunks are read here, whose records follow a head of fixed size.
+_MCAP_CHUNK_FIXED = chunk_head_size("")
+_MCAP_MESSAGE_FIXED = MESSAGE_FIELDS  # a message record's fields before its data
 
 
 class _McapBag(_MappedBag):
@@ -474,17 +480,17 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
         return refs if not any(expected.get(cid, 0) for cid in channels) else None
     index_at, index_channel, records, records_end = np.array(indexes, np.int64).T
     data = np.frombuffer(buffer, np.uint8)
-    if records_end.max() > len(data) or (index_at + 15 > len(data)).any():
+    if records_end.max() > len(data) or (index_at + MESSAGE_INDEX_HEAD.size > len(data)).any():
         return None
-    if ((data[index_at] != _MCAP_MESSAGE_INDEX).any()
-            or (_gather(data, index_at + 9, 2).view("<u2").ravel() != index_channel).any()):
+    heads = _gather(data, index_at, MESSAGE_INDEX_HEAD.size).view(MESSAGE_INDEX_HEAD_DTYPE).ravel()
+    if (heads["opcode"] != Opcode.MESSAGE_INDEX).any() or (heads["channel"] != index_channel).any():
         return None
-    counts = _gather(data, index_at + 11, 4).view("<u4").ravel().astype(np.int64) // 16
-    # Entry k of index record r: its (log time, offset) pair is 16 bytes at index_at[r] + 15 + 16 k.
+    counts = heads["nbytes"].astype(np.int64) // INDEX_PAIR
+    # Entry k of index record r: its (log time, offset) pair is 16 bytes at its pairs' start + 16 k.
     owner = np.repeat(np.arange(len(index_at)), counts)
     entry = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-    pair_at = index_at[owner] + 15 + 16 * entry
-    if len(pair_at) and pair_at.max() + 16 > len(data):
+    pair_at = index_at[owner] + MESSAGE_INDEX_HEAD.size + INDEX_PAIR * entry
+    if len(pair_at) and pair_at.max() + INDEX_PAIR > len(data):
         return None
     tables = []
     for start in range(0, len(owner), INDEX_BLOCK):  # bounded temporaries for a long 1 kHz series
@@ -493,16 +499,15 @@ def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.
         log_time = _gather(data, at, 8).view("<u8").ravel().astype(np.int64)
         record = records[own] + _gather(data, at + 8, 8).view("<u8").ravel().astype(np.int64)
         end, channel = records_end[own], index_channel[own]
-        if (record + 9 + _MCAP_MESSAGE_FIXED > end).any():
+        if (record + MESSAGE_HEAD.size > end).any():
             return None
-        length = _gather(data, record + 1, 8).view("<u8").ravel().astype(np.int64)
-        if not ((data[record] == _MCAP_MESSAGE).all() and (record + 9 + length <= end).all()
-                and (length >= _MCAP_MESSAGE_FIXED).all()
-                and (_gather(data, record + 9, 2).view("<u2").ravel() == channel).all()
-                and (_gather(data, record + 15, 8).view("<u8").ravel().astype(np.int64) == log_time).all()):
+        message = _gather(data, record, MESSAGE_HEAD.size).view(MESSAGE_HEAD_DTYPE).ravel()
+        length = message["length"].astype(np.int64)
+        if not ((message["opcode"] == Opcode.MESSAGE).all() and (record + RECORD_HEAD.size + length <= end).all()
+                and (length >= MESSAGE_FIELDS).all() and (message["channel"] == channel).all()
+                and (message["log_time"].astype(np.int64) == log_time).all()):
             return None
-        tables.append(np.column_stack([log_time, record + 9 + _MCAP_MESSAGE_FIXED, length - _MCAP_MESSAGE_FIXED,
-                                       channel]))
+        tables.append(np.column_stack([log_time, record + MESSAGE_HEAD.size, length - MESSAGE_FIELDS, channel]))
     del data
     table = np.concatenate(tables)
     found, count = np.unique(table[:, 3], return_counts=True)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import struct
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,8 +9,7 @@ import numpy as np
 
 from vfdata.errors import VisionForceError
 from vfdata.recording import layout
-from vfdata.recording.mcapfile import _FOOTER_SIZE, MAGIC, OP_DATA_END, OP_FOOTER
-from vfdata.recording.messages import decode
+from vfdata.recording.mcaprecords import crc32
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS, Recording
 
 
@@ -53,35 +50,47 @@ def info_text(path: str | Path) -> str:
         times = rec.log_times_ns(info.topic) if info.count else np.zeros(0)
         gap = np.diff(times).max() / 1e6 if len(times) > 1 else 0.0
         lines.append(f"{info.topic:34} {info.msgtype:34} {info.count:>8} {info.rate_hz:>9.2f} {gap:>11.2f}")
+    # A damaged chunk or payload leaves its section out; `damaged:` below says why.
+    unreadable = []
     if rec.has(layout.WRENCH) and rec.num_frames:
-        stats = sync_stats(rec.frame_times_ns, rec.force.times_ns)
-        lines.append("")
-        lines.append(
-            f"force-to-frame sync: {stats.samples_per_frame_median:.0f} samples per frame (median); nearest sample "
-            f"{stats.nearest_offset_median_ns / 1e6:.3f} ms median, {stats.nearest_offset_max_ns / 1e6:.3f} ms max; "
-            f"{stats.frames_without_force} frame(s) farther than {FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms from any sample"
-        )
+        try:
+            stats = sync_stats(rec.frame_times_ns, rec.force.times_ns)
+            lines.append("")
+            lines.append(
+                f"force-to-frame sync: {stats.samples_per_frame_median:.0f} samples per frame (median); nearest "
+                f"sample {stats.nearest_offset_median_ns / 1e6:.3f} ms median, "
+                f"{stats.nearest_offset_max_ns / 1e6:.3f} ms max; {stats.frames_without_force} frame(s) farther "
+                f"than {FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms from any sample"
+            )
+        except VisionForceError as exc:
+            unreadable.append(exc.problem if hasattr(exc, "problem") else str(exc))
     if rec.has(layout.LEFT_INFO):
-        stereo = rec.stereo
-        cam = stereo.left
-        lines.append(
-            f"camera: {cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f} px, "
-            f"baseline {stereo.baseline_mm:.2f} mm"
-        )
-    for problem in rec.problems:
+        try:
+            stereo = rec.stereo
+            cam = stereo.left
+            lines.append(
+                f"camera: {cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} "
+                f"cy {cam.cy:.1f} px, baseline {stereo.baseline_mm:.2f} mm"
+            )
+        except VisionForceError as exc:
+            unreadable.append(exc.problem if hasattr(exc, "problem") else str(exc))
+    for problem in dict.fromkeys(rec.problems + unreadable):
         lines.append(f"damaged: {problem}")
     return "\n".join(lines)
 
 
 def check_file(path: str | Path) -> list[str]:
-    """Every problem found (empty when the file is sound and follows the layout)."""
+    """Every problem found (empty when the file is sound and follows the layout). The file is read
+    as `Recording.open(path, damaged="skip")` reads it: every chunk is checked (record, CRC, message
+    index), so this lists exactly the damage the reader refuses, plus the data-section CRC, which
+    covers what no other CRC does (metadata, the header, message indexes), and the layout."""
     path = Path(path)
     try:
-        rec = Recording.open(path)
+        rec = Recording.open(path, damaged="skip")
     except VisionForceError as exc:
         return [str(exc)]
     problems = list(rec.problems)
-    problems += _check_crcs(path, rec)
+    problems += _check_data_crc(rec)
     index = rec._mcap.index
     if index.profile != layout.PROFILE:
         problems.append(f"profile is '{index.profile}', expected '{layout.PROFILE}'")
@@ -128,58 +137,32 @@ def _check_stamps(rec: Recording, topic: str) -> list[str]:
     steps = np.diff(times)
     if (steps <= 0).any():
         problems.append(f"{topic}: {(steps <= 0).sum()} stamp(s) repeat or go backwards")
-    channel = rec._by_topic[topic]
     mismatched = 0
     try:
         if topic in (layout.WRENCH, layout.ECM_POSE):
             stamps = rec.force.times_ns if topic == layout.WRENCH else rec.ecm_pose.times_ns
             mismatched = int((np.sort(stamps) != times).sum())
         else:
-            for log_time, payload in rec._mcap.iter_payloads(channel.id):
-                message = decode(channel.msgtype, payload)
+            for log_time, message in rec.messages(topic):
                 if getattr(message, "stamp_ns", log_time) != log_time:
                     mismatched += 1
-    except (VisionForceError, ValueError) as exc:
-        problems.append(f"{topic}: message cannot be decoded ({exc})")
+    except VisionForceError as exc:
+        problems.append(exc.problem if hasattr(exc, "problem") else str(exc))
     if mismatched:
         problems.append(f"{topic}: {mismatched} message(s) with header.stamp != log time")
     return problems
 
 
-def _check_crcs(path: Path, rec: Recording) -> list[str]:
-    problems = []
+def _check_data_crc(rec: Recording, block: int = 16 * 1024 * 1024) -> list[str]:
+    """The data-section CRC of the DataEnd record, where the writer computed one."""
     mcap = rec._mcap
-    for chunk_id, chunk in enumerate(mcap.index.chunks):
-        try:
-            if not mcap.chunk_crc_ok(chunk_id):
-                problems.append(f"chunk at byte {chunk.record_offset}: CRC mismatch")
-        except VisionForceError as exc:
-            problems.append(str(exc))
-    if not mcap.index.from_summary:
-        return problems
-    size = mcap.size
-    footer_at = size - len(MAGIC) - _FOOTER_SIZE
-    summary_start, summary_offset_start, summary_crc = struct.unpack("<QQI", mcap.read_at(footer_at + 9, 20))
-    if summary_crc:
-        crc = _crc_range(mcap, summary_start, footer_at + 1 + 8 + 16)
-        if crc != summary_crc:
-            problems.append("summary section CRC mismatch")
-    data_end_at = (summary_start or footer_at) - 13
-    opcode, _length = struct.unpack("<BQ", mcap.read_at(data_end_at, 9))
-    if opcode == OP_DATA_END:
-        (data_crc,) = struct.unpack("<I", mcap.read_at(data_end_at + 9, 4))
-        if data_crc and _crc_range(mcap, 0, data_end_at) != data_crc:
-            problems.append("data section CRC mismatch")
-    elif opcode != OP_FOOTER:
-        problems.append("data end record not found before the summary")
-    return problems
-
-
-def _crc_range(mcap, start: int, end: int, block: int = 16 * 1024 * 1024) -> int:
+    end, expected = mcap.index.data_end_offset, mcap.index.data_section_crc
+    if end is None and mcap.index.library.startswith("visionforce"):  # our writer always writes one
+        return ["no DataEnd record before the summary"]
+    if end is None or not expected:
+        return []
     crc = 0
-    pos = start
-    while pos < end:
-        n = min(block, end - pos)
-        crc = zlib.crc32(mcap.read_at(pos, n), crc)
-        pos += n
-    return crc
+    for pos in range(0, end, block):
+        crc = crc32(mcap.read_at(pos, min(block, end - pos)), crc)
+    return [] if crc == expected else ["data section CRC mismatch (the header, metadata, message indexes or "
+                                       "chunk records are damaged)"]

@@ -1,151 +1,71 @@
-"""Random access to the messages of an MCAP file, through its standard indexes.
+"""Random access to the messages of an MCAP file, through its index (`index_builder`).
 
-The summary's chunk indexes and the message index records that follow each chunk give, per channel,
-every message's log time and its offset inside its decompressed chunk. With those, one frame costs
-one chunk decompression (cached), and a whole force series is a numpy gather over a few chunks
-instead of a per-message decode. A file without a usable summary (truncated, damaged, written
-without one) is indexed by a linear scan up to the first damage; `problems` says what was found."""
+One frame costs one chunk read (cached), and a whole force series is a numpy gather over a few
+chunks instead of a per-message decode. Every chunk is checked the first time it is read: its record
+against its chunk index, its CRC, and its message index against its records (an index that points at
+the wrong records is corrected from the records themselves). A chunk that fails is refused with a
+`CorruptChunkError` unless the file was opened with `damaged="skip"` (every chunk is checked on
+opening and the damaged ones are left out) or `damaged="serve"` (likewise, but chunks that fail only
+their CRC are served as they are)."""
 
 from __future__ import annotations
 
 import os
-import struct
-import zlib
 from collections import OrderedDict
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import zstandard
 
 from vfdata.errors import FormatError
+from vfdata.recording.index_builder import build_index, scan_chunk_records
+from vfdata.recording.mcapindex import Chunk, MessageLocations, merge_locations
+from vfdata.recording.mcaprecords import (
+    CHUNK_FIELDS,
+    MESSAGE_FIELDS,
+    MESSAGE_HEAD,
+    MESSAGE_HEAD_DTYPE,
+    RECORD_HEAD,
+    Opcode,
+    crc32,
+)
 
-MAGIC = b"\x89MCAP0\r\n"
-
-OP_HEADER = 0x01
-OP_FOOTER = 0x02
-OP_SCHEMA = 0x03
-OP_CHANNEL = 0x04
-OP_MESSAGE = 0x05
-OP_CHUNK = 0x06
-OP_MESSAGE_INDEX = 0x07
-OP_CHUNK_INDEX = 0x08
-OP_METADATA = 0x0C
-OP_METADATA_INDEX = 0x0D
-OP_DATA_END = 0x0F
-
-_RECORD_HEAD = struct.Struct("<BQ")
-_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4
-# opcode, length, channel id, sequence, log time, publish time
-_MESSAGE_HEAD = 1 + 8 + 2 + 4 + 8 + 8
+DAMAGED = ("error", "skip", "serve")
 
 
-@dataclass
-class Channel:
-    id: int
-    topic: str
-    msgtype: str
-    message_encoding: str
-    schema_encoding: str
-    schema: bytes
+class CorruptChunkError(FormatError):
+    """A chunk whose messages are refused: it cannot be read, fails its CRC check, or its message
+    index disagrees with its records in log times or counts."""
 
-
-@dataclass
-class Chunk:
-    record_offset: int  # file offset of the chunk record
-    data_offset: int  # file offset of its (compressed) records
-    compressed_size: int
-    uncompressed_size: int
-    uncompressed_crc: int
-    compression: str
-    start_ns: int
-    end_ns: int
-
-
-@dataclass
-class MessageLocations:
-    """Where one channel's messages are, sorted by log time. `chunk` is -1 for a message outside any
-    chunk, whose `offset` is then its absolute record offset in the file."""
-
-    log_time_ns: np.ndarray
-    chunk: np.ndarray
-    offset: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.log_time_ns)
-
-
-@dataclass
-class McapIndex:
-    channels: dict[int, Channel] = field(default_factory=dict)
-    chunks: list[Chunk] = field(default_factory=list)
-    messages: dict[int, MessageLocations] = field(default_factory=dict)
-    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    profile: str = ""
-    library: str = ""
-    from_summary: bool = False
-    problems: list[str] = field(default_factory=list)
-    data_end_offset: int | None = None
-    data_section_crc: int | None = None
-
-
-class _Buffer:
-    """Little-endian field reader over bytes, with bounds checks that raise FormatError."""
-
-    def __init__(self, data: bytes | memoryview, path: Path, what: str):
-        self.data = memoryview(data)
-        self.pos = 0
-        self.path = path
-        self.what = what
-
-    def take(self, size: int) -> memoryview:
-        end = self.pos + size
-        if end > len(self.data):
-            raise FormatError(self.path, f"{self.what} record is truncated")
-        view = self.data[self.pos:end]
-        self.pos = end
-        return view
-
-    def u16(self) -> int:
-        return struct.unpack("<H", self.take(2))[0]
-
-    def u32(self) -> int:
-        return struct.unpack("<I", self.take(4))[0]
-
-    def u64(self) -> int:
-        return struct.unpack("<Q", self.take(8))[0]
-
-    def string(self) -> str:
-        return bytes(self.take(self.u32())).decode("utf-8", errors="replace")
-
-    def prefixed_bytes(self) -> bytes:
-        return bytes(self.take(self.u32()))
-
-    def string_map(self) -> dict[str, str]:
-        end = self.pos + 4 + self.u32()
-        result = {}
-        while self.pos < end:
-            key = self.string()
-            result[key] = self.string()
-        return result
+    def __init__(self, path: str | Path, chunk_offset: int, topics: list[str], problem: str):
+        self.chunk_offset = chunk_offset
+        self.topics = topics
+        super().__init__(path, f"chunk at byte {chunk_offset} ({', '.join(topics) or 'no known topic'}) {problem}: "
+                               "its messages are refused (open with damaged='skip' to read the rest of the file, "
+                               "'serve' to read them as they are; `vfdata check` lists the damage)")
 
 
 class McapFile:
     """An MCAP file opened for indexed reading. Opened lazily and re-opened after a fork, so an
     instance can be handed to DataLoader workers."""
 
-    def __init__(self, path: str | Path, chunk_cache: int = 4):
+    def __init__(self, path: str | Path, chunk_cache: int = 4, damaged: str = "error"):
+        if damaged not in DAMAGED:
+            raise ValueError(f"damaged must be one of {DAMAGED}, not {damaged!r}")
         self.path = Path(path)
         if not self.path.is_file():
             raise FormatError(self.path, "file not found")
+        self.damaged = damaged
         self._file = None
         self._pid = None
-        self._cache: OrderedDict[int, bytes] = OrderedDict()
+        self._cache: OrderedDict[int, bytes | memoryview] = OrderedDict()
         self._cache_size = chunk_cache
-        self._schemas: dict[int, tuple[str, str, bytes]] = {}
         self._zstd = zstandard.ZstdDecompressor()
         self.size = self.path.stat().st_size
-        self.index = self._build_index()
+        self.index = build_index(self)
+        if damaged != "error":
+            self.verify_all()
+            self._leave_out_damaged()
 
     # -- file access -------------------------------------------------------------------------
     def _handle(self):
@@ -156,6 +76,11 @@ class McapFile:
         return self._file
 
     def read_at(self, offset: int, size: int) -> bytes:
+        """`size` bytes at `offset`; a range outside the file (a damaged length or offset) is a
+        FormatError, never a read of that size."""
+        if offset < 0 or size < 0 or offset + size > self.size:
+            raise FormatError(self.path, f"a record points at bytes {offset}..{offset + size}, past the end of "
+                                         f"the file ({self.size} bytes)")
         handle = self._handle()
         handle.seek(offset)
         data = handle.read(size)
@@ -182,75 +107,198 @@ class McapFile:
         self._zstd = zstandard.ZstdDecompressor()
 
     # -- chunks --------------------------------------------------------------------------------
-    def chunk_records(self, chunk_id: int) -> bytes:
-        """The decompressed records of a chunk (cached)."""
+    def read_chunk(self, chunk: Chunk, problems: list[str]) -> bytes | memoryview:
+        """A chunk's records, decompressed (uncompressed: a view of one read, no copy). On its first
+        read the chunk record is checked against the index and the records against the CRC, setting
+        `chunk.status` and noting what fails in `problems`; FormatError when it cannot be read."""
+        where = f"chunk at byte {chunk.record_offset}"
+        head = chunk.data_offset - chunk.record_offset
+        raw = memoryview(self.read_at(chunk.record_offset, head + chunk.compressed_size))
+        first = not chunk.status
+        if first and not self._head_agrees(chunk, raw):
+            problems.append(f"{where}: its record disagrees with its chunk index")
+        try:
+            data = self._decompress(chunk, raw[head:])
+        except FormatError as exc:
+            chunk.status = "unreadable"
+            problems.append(exc.problem)
+            raise
+        if first:
+            crc = chunk.uncompressed_crc
+            chunk.status = "bad-crc" if crc and crc32(data) != crc else "ok"
+            if chunk.status == "bad-crc":
+                problems.append(f"{where}: CRC mismatch (the chunk is damaged)")
+        return data
+
+    def _head_agrees(self, chunk: Chunk, raw: memoryview) -> bool:
+        opcode, length = RECORD_HEAD.unpack_from(raw)
+        start, end, uncompressed_size, crc = CHUNK_FIELDS.unpack_from(raw, RECORD_HEAD.size)
+        if chunk.uncompressed_crc is None:
+            chunk.uncompressed_crc = crc  # the CRC is only in the chunk record
+        head = chunk.data_offset - chunk.record_offset
+        name = bytes(raw[RECORD_HEAD.size + CHUNK_FIELDS.size + 4:head - 8])
+        name_length = int.from_bytes(raw[RECORD_HEAD.size + CHUNK_FIELDS.size:RECORD_HEAD.size + CHUNK_FIELDS.size + 4],
+                                     "little")
+        records_length = int.from_bytes(raw[head - 8:head], "little")
+        return (opcode == Opcode.CHUNK and length == chunk.record_length - RECORD_HEAD.size
+                and (start, end, uncompressed_size) == (chunk.start_ns, chunk.end_ns, chunk.uncompressed_size)
+                and name_length == len(name) and name == chunk.compression.encode()
+                and records_length == chunk.compressed_size and crc == chunk.uncompressed_crc)
+
+    def _decompress(self, chunk: Chunk, raw: memoryview) -> bytes | memoryview:
+        """The records of a chunk, never more than its stated size (a damaged size or frame header
+        gives a FormatError, not a huge allocation)."""
+        size = chunk.uncompressed_size
+        where = f"chunk at byte {chunk.record_offset}"
+        try:
+            if chunk.compression == "":
+                data = raw
+            elif chunk.compression == "zstd":
+                content = zstandard.frame_content_size(raw)
+                if content == size:
+                    data = self._zstd.decompress(raw)
+                elif content == -1:  # no size in the frame: read at most one byte past the stated size
+                    data = self._zstd.stream_reader(raw).read(size + 1)
+                else:
+                    raise FormatError(self.path, f"{where} decompresses to {content} bytes, its index says {size}")
+            elif chunk.compression == "lz4":
+                import lz4.frame  # a dependency of `mcap`; only files written by others use it
+
+                data = lz4.frame.LZ4FrameDecompressor().decompress(raw, max_length=size + 1)
+            else:
+                raise FormatError(self.path, f"{where}: unsupported compression '{chunk.compression}'")
+        except (zstandard.ZstdError, RuntimeError, ValueError, MemoryError) as exc:
+            raise FormatError(self.path, f"{where} cannot be decompressed ({type(exc).__name__}: {exc})") from None
+        if len(data) != size:
+            raise FormatError(self.path, f"{where} decompresses to a wrong size")
+        return data
+
+    def chunk_records(self, chunk_id: int) -> bytes | memoryview:
+        """The decompressed records of a chunk (cached); CorruptChunkError for a damaged chunk."""
         if chunk_id in self._cache:
             self._cache.move_to_end(chunk_id)
             return self._cache[chunk_id]
         chunk = self.index.chunks[chunk_id]
-        raw = self.read_at(chunk.data_offset, chunk.compressed_size)
-        data = self._decompress(chunk, raw)
+        if chunk.status == "unreadable":
+            raise self._refused(chunk, "cannot be read")
+        first = not chunk.status
+        try:
+            data = self.read_chunk(chunk, self.index.problems)
+        except FormatError as exc:
+            raise self._refused(chunk, f"cannot be read ({exc.problem})") from None
+        if first and chunk.status == "ok":
+            self._verify_message_index(chunk_id, data)
+        if chunk.status == "bad-crc" and self.damaged != "serve":
+            raise self._refused(chunk, "fails its CRC check")
+        if chunk.status == "bad-index":
+            raise self._refused(chunk, "has a message index that disagrees with its records in log times or counts "
+                                       "(its records may be intact: damaged='skip' indexes them from the records)")
         self._cache[chunk_id] = data
         if len(self._cache) > self._cache_size:
             self._cache.popitem(last=False)
         return data
 
-    def _decompress(self, chunk: Chunk, raw: bytes) -> bytes:
-        try:
-            if chunk.compression == "zstd":
-                data = self._zstd.decompress(raw, max_output_size=chunk.uncompressed_size)
-            elif chunk.compression == "lz4":
-                import lz4.frame
+    def _refused(self, chunk: Chunk, problem: str) -> CorruptChunkError:
+        topics = sorted(self.index.channels[c].topic for c in chunk.channels if c in self.index.channels)
+        return CorruptChunkError(self.path, chunk.record_offset, topics, problem)
 
-                data = lz4.frame.decompress(raw)
-            elif chunk.compression == "":
-                data = raw
-            else:
-                raise FormatError(self.path, f"unsupported chunk compression '{chunk.compression}'")
-        except (zstandard.ZstdError, RuntimeError) as exc:
-            raise FormatError(self.path, f"chunk at byte {chunk.record_offset} cannot be decompressed: {exc}") from None
-        if len(data) != chunk.uncompressed_size:
-            raise FormatError(self.path, f"chunk at byte {chunk.record_offset} decompresses to a wrong size")
-        return data
-
-    def chunk_crc_ok(self, chunk_id: int) -> bool:
+    def _verify_message_index(self, chunk_id: int, records: bytes | memoryview) -> None:
+        """Check that the index's entries for this chunk point at message records of their channel and
+        log time. Where they do not, the chunk's records are walked: offsets that were wrong are
+        corrected (noted); log times or counts that disagree make the chunk 'bad-index'."""
         chunk = self.index.chunks[chunk_id]
-        return chunk.uncompressed_crc == 0 or zlib.crc32(self.chunk_records(chunk_id)) == chunk.uncompressed_crc
+        if all(_heads_match(records, self.index.messages[c], chunk_id, c) for c in chunk.channels
+               if c in self.index.messages):
+            return
+        where = f"chunk at byte {chunk.record_offset}"
+        found, problem = scan_chunk_records(records, self.path, where)
+        indexed = {c: self.index.messages[c] for c in chunk.channels | set(found) if c in self.index.messages}
+        same = problem is None and set(found) <= set(indexed) and all(
+            np.array_equal(np.sort(loc.log_time_ns[loc.in_chunk(chunk_id)]), np.sort(found.get(c, ([], []))[0]))
+            for c, loc in indexed.items())
+        if same:
+            for c, loc in indexed.items():
+                times, offsets = (np.asarray(v, np.int64) for v in found.get(c, ([], [])))
+                loc.offset[loc.in_chunk(chunk_id)] = offsets[np.lexsort((offsets, times))]
+            self.index.problems.append(f"{where}: its message index points at the wrong records (the messages "
+                                       "are intact and were located from the chunk's records)")
+        else:
+            chunk.status = "bad-index"
+            self.index.problems.append(f"{where}: its message index disagrees with its records")
+
+    def verify_all(self) -> list[str]:
+        """Read and check every chunk not read yet (see `read_chunk`); the file's problems."""
+        for chunk_id, chunk in enumerate(self.index.chunks):
+            if chunk.status:
+                continue
+            try:
+                data = self.read_chunk(chunk, self.index.problems)
+            except FormatError:
+                continue
+            if chunk.status == "ok":
+                self._verify_message_index(chunk_id, data)
+        return self.index.problems
+
+    def _leave_out_damaged(self) -> None:
+        """damaged='skip'/'serve': the index lists only what can be served; a chunk whose message index
+        disagrees with its records is indexed from its records."""
+        for chunk_id, chunk in enumerate(self.index.chunks):
+            if chunk.status == "bad-index":
+                records = self.read_chunk(chunk, [])
+                found, _ = scan_chunk_records(records, self.path, "")
+                self._replace_entries(chunk_id, found)
+                chunk.status = "ok"
+            elif chunk.status == "unreadable" or (chunk.status == "bad-crc" and self.damaged == "skip"):
+                self._replace_entries(chunk_id, {})
+
+    def _replace_entries(self, chunk_id: int, found: dict[int, tuple[list[int], list[int]]]) -> None:
+        chunk = self.index.chunks[chunk_id]
+        for channel_id in chunk.channels | set(found):
+            loc = self.index.messages.get(channel_id)
+            if loc is None:
+                continue
+            keep = loc.chunk != chunk_id
+            times, offsets = found.get(channel_id, ([], []))
+            self.index.messages[channel_id] = merge_locations(
+                np.concatenate([loc.log_time_ns[keep], np.asarray(times, np.int64)]),
+                np.concatenate([loc.chunk[keep], np.full(len(times), chunk_id, np.int32)]),
+                np.concatenate([loc.offset[keep], np.asarray(offsets, np.int64)]))
+        chunk.channels = {c for c in found if c in self.index.messages}
 
     # -- messages ------------------------------------------------------------------------------
     def payload(self, channel_id: int, i: int) -> bytes | memoryview:
-        """The CDR payload of the i-th message (in log-time order) of a channel: a view into the
-        cached chunk (no copy), or bytes for a message outside any chunk."""
+        """The payload of the i-th message (in log-time order) of a channel: a view into the cached
+        chunk (no copy), or bytes for a message outside any chunk."""
         loc = self.index.messages[channel_id]
         chunk, offset = int(loc.chunk[i]), int(loc.offset[i])
         if chunk < 0:
-            head = self.read_at(offset, 9)
-            length = _RECORD_HEAD.unpack(head)[1]
-            return self.read_at(offset + _MESSAGE_HEAD, length - (_MESSAGE_HEAD - 9))
+            length = RECORD_HEAD.unpack(self.read_at(offset, RECORD_HEAD.size))[1]
+            return self.read_at(offset + MESSAGE_HEAD.size, length - MESSAGE_FIELDS)
         records = self.chunk_records(chunk)
-        length = struct.unpack_from("<Q", records, offset + 1)[0]
-        return memoryview(records)[offset + _MESSAGE_HEAD: offset + 9 + length]
+        length = RECORD_HEAD.unpack_from(records, offset)[1]
+        return memoryview(records)[offset + MESSAGE_HEAD.size:offset + RECORD_HEAD.size + length]
 
     def iter_payload_matrices(self, channel_id: int):
         """A channel's payloads as (N_i, L_i) uint8 matrices, chunk by chunk and one per distinct
         payload length (in practice one): for fixed-size messages (wrench, pose), decoded with numpy
         one chunk at a time so that memory stays at one chunk's worth."""
         loc = self.index.messages[channel_id]
-        for chunk in np.unique(loc.chunk):
-            sel = np.nonzero(loc.chunk == chunk)[0]
+        for chunk, sel in loc.groups().items():
             if chunk < 0:
                 for i in sel:
                     yield np.frombuffer(bytes(self.payload(channel_id, int(i))), dtype=np.uint8)[None]
                 continue
-            records = np.frombuffer(self.chunk_records(int(chunk)), dtype=np.uint8)
+            records = self.chunk_records(chunk)
             offsets = loc.offset[sel]
-            length_bytes = records[(offsets + 1)[:, None] + np.arange(8)]
-            payload_len = length_bytes.copy().view("<u8").ravel().astype(np.int64) - (_MESSAGE_HEAD - 9)
+            heads = message_heads(records, offsets)
+            if heads is None:
+                raise FormatError(self.path, "a message runs past the end of its chunk")
+            payload_len = heads["length"].astype(np.int64) - MESSAGE_FIELDS
             for length in np.unique(payload_len):
-                starts = offsets[payload_len == length] + _MESSAGE_HEAD
-                if starts.max() + length > len(records):
-                    raise FormatError(self.path, "message runs past the end of its chunk")
-                yield records[starts[:, None] + np.arange(length)]
+                starts = offsets[payload_len == length] + MESSAGE_HEAD.size
+                if length < 0 or starts.max() + length > len(records):
+                    raise FormatError(self.path, "a message runs past the end of its chunk")
+                yield _rows(records, starts, int(length))
 
     def iter_payloads(self, channel_id: int, start: int = 0, stop: int | None = None):
         """(log_time_ns, payload) of a channel's messages in log-time order."""
@@ -258,203 +306,39 @@ class McapFile:
         for i in range(start, len(loc) if stop is None else stop):
             yield int(loc.log_time_ns[i]), self.payload(channel_id, i)
 
-    # -- index construction --------------------------------------------------------------------
-    def _build_index(self) -> McapIndex:
-        if self.size < len(MAGIC) * 2 or self.read_at(0, len(MAGIC)) != MAGIC:
-            raise FormatError(self.path, "not an MCAP file (bad magic)")
-        index = McapIndex()
-        if self.size >= len(MAGIC) * 2 + _FOOTER_SIZE and self.read_at(self.size - len(MAGIC), len(MAGIC)) == MAGIC:
-            try:
-                self._read_summary(index)
-            except FormatError as exc:
-                index = McapIndex(problems=[f"summary unusable ({exc.problem}); scanned the data section instead"])
-        else:
-            index.problems.append("file is truncated (no footer); scanned the data section up to the damage")
-        if not index.from_summary:
-            self._scan(index)
-        self._read_header(index)
-        return index
 
-    def _read_header(self, index: McapIndex) -> None:
-        opcode, length = _RECORD_HEAD.unpack(self.read_at(len(MAGIC), 9))
-        if opcode != OP_HEADER:
-            raise FormatError(self.path, "first record is not an MCAP header")
-        buf = _Buffer(self.read_at(len(MAGIC) + 9, min(length, self.size - len(MAGIC) - 9)), self.path, "header")
-        index.profile = buf.string()
-        index.library = buf.string()
-
-    def _read_summary(self, index: McapIndex) -> None:
-        footer_at = self.size - len(MAGIC) - _FOOTER_SIZE
-        opcode, length = _RECORD_HEAD.unpack(self.read_at(footer_at, 9))
-        if opcode != OP_FOOTER:
-            raise FormatError(self.path, "footer record not found")
-        summary_start, _summary_offset_start, _crc = struct.unpack("<QQI", self.read_at(footer_at + 9, 20))
-        if summary_start == 0:
-            raise FormatError(self.path, "file has no summary section")
-        if not (len(MAGIC) < summary_start <= footer_at):
-            raise FormatError(self.path, "footer points outside the file")
-        summary = self.read_at(summary_start, footer_at - summary_start)
-        chunk_indexes = []
-        metadata_offsets = []
-        pos = 0
-        while pos < len(summary):
-            opcode, length = _RECORD_HEAD.unpack_from(summary, pos)
-            body = _Buffer(memoryview(summary)[pos + 9: pos + 9 + length], self.path, "summary")
-            if pos + 9 + length > len(summary):
-                raise FormatError(self.path, "summary record runs past the footer")
-            if opcode == OP_SCHEMA:
-                self._parse_schema(body)
-            elif opcode == OP_CHANNEL:
-                self._parse_channel(body, index)
-            elif opcode == OP_CHUNK_INDEX:
-                chunk_indexes.append(self._parse_chunk_index(body))
-            elif opcode == OP_METADATA_INDEX:
-                offset = body.u64()
-                body.u64()
-                metadata_offsets.append(offset)
-            pos += 9 + length
-        if not index.channels:
-            raise FormatError(self.path, "summary lists no channels")
-        per_channel: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
-        for chunk_id, (chunk, index_offsets, index_length) in enumerate(chunk_indexes):
-            index.chunks.append(chunk)
-            if not index_offsets:
-                continue
-            first = min(index_offsets.values())
-            block = self.read_at(first, index_length)
-            for channel_id, offset in index_offsets.items():
-                times, offsets = self._parse_message_index(block, offset - first)
-                per_channel.setdefault(channel_id, []).append(
-                    (times, np.full(len(times), chunk_id, dtype=np.int32), offsets)
-                )
-        for channel_id in index.channels:
-            index.messages[channel_id] = _merge_locations(per_channel.get(channel_id, []))
-        for offset in metadata_offsets:
-            opcode, length = _RECORD_HEAD.unpack(self.read_at(offset, 9))
-            if opcode != OP_METADATA:
-                raise FormatError(self.path, "metadata index points at something else")
-            body = _Buffer(self.read_at(offset + 9, length), self.path, "metadata")
-            name = body.string()
-            index.metadata[name] = body.string_map()
-        index.from_summary = True
-
-    def _parse_message_index(self, block: bytes, pos: int) -> tuple[np.ndarray, np.ndarray]:
-        opcode, length = _RECORD_HEAD.unpack_from(block, pos)
-        if opcode != OP_MESSAGE_INDEX:
-            raise FormatError(self.path, "message index offset points at something else")
-        (count_bytes,) = struct.unpack_from("<I", block, pos + 9 + 2)
-        pairs = np.frombuffer(block, dtype="<u8", count=count_bytes // 8, offset=pos + 9 + 2 + 4).reshape(-1, 2)
-        return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
-
-    def _parse_chunk_index(self, body: _Buffer) -> tuple[Chunk, dict[int, int], int]:
-        start_ns, end_ns, record_offset, record_length = body.u64(), body.u64(), body.u64(), body.u64()
-        map_end = body.pos + 4 + body.u32()
-        offsets = {}
-        while body.pos < map_end:
-            channel_id = body.u16()
-            offsets[channel_id] = body.u64()
-        index_length = body.u64()
-        compression = body.string()
-        compressed_size, uncompressed_size = body.u64(), body.u64()
-        if record_offset + record_length > self.size:
-            raise FormatError(self.path, "a chunk index points past the end of the file")
-        # Chunk record: opcode, length, start, end, uncompressed size, crc, compression, records length.
-        head = self.read_at(record_offset + 9 + 24, 4)
-        (crc,) = struct.unpack("<I", head)
-        data_offset = record_offset + 9 + 24 + 4 + 4 + len(compression.encode()) + 8
-        chunk = Chunk(record_offset, data_offset, compressed_size, uncompressed_size, crc, compression, start_ns,
-                      end_ns)
-        return chunk, offsets, index_length
-
-    def _parse_schema(self, body: _Buffer) -> None:
-        schema_id = body.u16()
-        name = body.string()
-        encoding = body.string()
-        self._schemas[schema_id] = (name, encoding, body.prefixed_bytes())
-
-    def _parse_channel(self, body: _Buffer, index: McapIndex) -> None:
-        channel_id = body.u16()
-        schema_id = body.u16()
-        topic = body.string()
-        message_encoding = body.string()
-        name, encoding, data = self._schemas.get(schema_id, ("", "", b""))
-        index.channels[channel_id] = Channel(channel_id, topic, name, message_encoding, encoding, data)
-
-    def _scan(self, index: McapIndex) -> None:
-        """Index by walking the records from the start, decompressing chunks, up to the first damage."""
-        per_channel: dict[int, list[tuple[int, int, int]]] = {}
-        pos = len(MAGIC)
-        while pos < self.size:
-            if pos + 9 > self.size:
-                index.problems.append(f"record header at byte {pos} is cut off")
-                break
-            opcode, length = _RECORD_HEAD.unpack(self.read_at(pos, 9))
-            if pos + 9 + length > self.size:
-                index.problems.append(f"record (opcode 0x{opcode:02x}) at byte {pos} is cut off")
-                break
-            if opcode == OP_DATA_END:
-                index.data_end_offset = pos
-                break
-            if opcode in (OP_SCHEMA, OP_CHANNEL, OP_METADATA, OP_MESSAGE, OP_CHUNK):
-                body = _Buffer(self.read_at(pos + 9, length), self.path, f"0x{opcode:02x}")
-                try:
-                    if opcode == OP_SCHEMA:
-                        self._parse_schema(body)
-                    elif opcode == OP_CHANNEL:
-                        self._parse_channel(body, index)
-                    elif opcode == OP_METADATA:
-                        name = body.string()
-                        index.metadata[name] = body.string_map()
-                    elif opcode == OP_MESSAGE:
-                        channel_id = body.u16()
-                        body.u32()
-                        per_channel.setdefault(channel_id, []).append((body.u64(), -1, pos))
-                    else:
-                        self._scan_chunk(body, pos, index, per_channel)
-                except FormatError as exc:
-                    index.problems.append(f"record at byte {pos}: {exc.problem}")
-                    break
-            pos += 9 + length
-        for channel_id in index.channels:
-            rows = per_channel.get(channel_id, [])
-            arr = np.array(rows, dtype=np.int64).reshape(-1, 3)
-            index.messages[channel_id] = _merge_locations(
-                [(arr[:, 0], arr[:, 1].astype(np.int32), arr[:, 2])]
-            )
-
-    def _scan_chunk(self, body: _Buffer, pos: int, index: McapIndex, per_channel) -> None:
-        start_ns, end_ns, uncompressed_size = body.u64(), body.u64(), body.u64()
-        crc = body.u32()
-        compression = body.string()
-        compressed_size = body.u64()
-        chunk = Chunk(pos, pos + 9 + body.pos, compressed_size, uncompressed_size, crc, compression, start_ns, end_ns)
-        records = self._decompress(chunk, bytes(body.take(compressed_size)))
-        chunk_id = len(index.chunks)
-        index.chunks.append(chunk)
-        if crc and zlib.crc32(records) != crc:
-            index.problems.append(f"chunk at byte {pos}: CRC mismatch")
-        inner = 0
-        while inner + 9 <= len(records):
-            opcode, length = _RECORD_HEAD.unpack_from(records, inner)
-            rec = _Buffer(memoryview(records)[inner + 9: inner + 9 + length], self.path, "chunk")
-            if opcode == OP_SCHEMA:
-                self._parse_schema(rec)
-            elif opcode == OP_CHANNEL:
-                self._parse_channel(rec, index)
-            elif opcode == OP_MESSAGE:
-                channel_id = rec.u16()
-                rec.u32()
-                per_channel.setdefault(channel_id, []).append((rec.u64(), chunk_id, inner))
-            inner += 9 + length
+def message_heads(records: bytes | memoryview, offsets: np.ndarray) -> np.ndarray | None:
+    """The message record heads (MESSAGE_HEAD_DTYPE) at `offsets` in a chunk's records; None where one
+    runs past the end. Records of equal length back to back (a series) are a strided view, no copy."""
+    size = len(records)
+    if not len(offsets):
+        return np.zeros(0, MESSAGE_HEAD_DTYPE)
+    if offsets.min() < 0 or offsets.max() + MESSAGE_HEAD.size > size:
+        return None
+    stride = int(offsets[1] - offsets[0]) if len(offsets) > 1 else MESSAGE_HEAD.size
+    if stride >= MESSAGE_HEAD.size and (np.diff(offsets) == stride).all():
+        return np.ndarray((len(offsets),), MESSAGE_HEAD_DTYPE, records, int(offsets[0]), (stride,))
+    data = np.frombuffer(records, np.uint8)
+    return data[offsets[:, None] + np.arange(MESSAGE_HEAD.size)].view(MESSAGE_HEAD_DTYPE).ravel()
 
 
-def _merge_locations(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> MessageLocations:
-    if not parts:
-        empty = np.zeros(0, dtype=np.int64)
-        return MessageLocations(empty, np.zeros(0, dtype=np.int32), empty)
-    times = np.concatenate([p[0] for p in parts])
-    chunks = np.concatenate([p[1] for p in parts])
-    offsets = np.concatenate([p[2] for p in parts])
-    # Chunks may overlap in time; file order breaks ties so equal stamps keep their write order.
-    order = np.lexsort((offsets, chunks, times))
-    return MessageLocations(times[order], chunks[order], offsets[order])
+def _rows(records: bytes | memoryview, starts: np.ndarray, length: int) -> np.ndarray:
+    """(n, length) uint8 of the bytes at each start: a strided view when the starts are evenly spaced."""
+    stride = int(starts[1] - starts[0]) if len(starts) > 1 else length
+    if stride >= length and (np.diff(starts) == stride).all():
+        return np.ndarray((len(starts), length), np.uint8, records, int(starts[0]), (stride, 1))
+    return np.frombuffer(records, np.uint8)[starts[:, None] + np.arange(length)]
+
+
+def _heads_match(records: bytes | memoryview, loc: MessageLocations, chunk_id: int, channel_id: int) -> bool:
+    """Whether the entries of `loc` in this chunk point at message records of `channel_id` with their
+    log times, each inside the chunk."""
+    sel = loc.in_chunk(chunk_id)
+    offsets = loc.offset[sel]
+    heads = message_heads(records, offsets)
+    if heads is None:
+        return False
+    length = heads["length"]
+    return bool(((heads["opcode"] == Opcode.MESSAGE) & (heads["channel"] == channel_id)
+                 & (heads["log_time"] == loc.log_time_ns[sel].astype(np.uint64)) & (length >= MESSAGE_FIELDS)
+                 & (length <= len(records) - offsets - RECORD_HEAD.size)).all())

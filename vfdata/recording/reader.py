@@ -2,7 +2,12 @@
 
 It reads any MCAP whose channels use the layout's ROS 2 schemas (CDR), whoever wrote it. Frame times
 are the left image's MCAP log times, which the layout requires to equal `header.stamp`; force and
-pose times are their messages' `header.stamp` (acquisition time)."""
+pose times are their messages' `header.stamp` (acquisition time).
+
+Damage is never served silently: a chunk that fails its checks (`mcapfile`) raises a
+`CorruptChunkError` when its messages are read, unless the file is opened with `damaged="skip"` or
+`damaged="serve"`; a payload that is not what its topic's type says raises a `FormatError` naming the
+file, the topic and the message."""
 
 from __future__ import annotations
 
@@ -17,14 +22,21 @@ from scipy.spatial.transform import Rotation, Slerp
 from vfdata.calibration import PinholeCamera, RectifiedStereo
 from vfdata.errors import FormatError
 from vfdata.recording import layout
+from vfdata.recording.cdr import CdrError
 from vfdata.recording.mcapfile import McapFile
 from vfdata.recording.messages import (
     CameraInfo,
     CompressedImage,
+    PoseStamped,
+    WrenchStamped,
     decode,
     decode_pose_batch,
     decode_wrench_batch,
 )
+
+# What a decoder raises on a payload that is not its type: CdrError, a bad UTF-8 string
+# (UnicodeDecodeError), a PointCloud2 whose fields make no numpy dtype (ValueError, TypeError).
+_DECODE_ERRORS = (CdrError, ValueError, TypeError, IndexError)
 
 # Largest gap (ns) between force samples across which `force_at` interpolates; beyond it the
 # result is NaN. 50 ms: a 30 Hz frame and a half, far above the 1 ms of a 1 kHz ATI stream.
@@ -70,17 +82,20 @@ class PoseSeries:
 
 class Recording:
     """A recording (or derived) MCAP file. `Recording.open(path)` reads only the summary; frames,
-    force and pose are read when asked. Safe to hand to DataLoader workers (the file is reopened
-    after a fork)."""
+    force and pose are read when asked, each chunk checked on its first read. `damaged`: "error"
+    (default) refuses the messages of a damaged chunk with a `CorruptChunkError`; "skip" checks every
+    chunk on opening and leaves the damaged ones out (`problems` lists them); "serve" does the same but
+    serves the chunks that fail only their CRC as they are. Safe to hand to DataLoader workers (the
+    file is reopened after a fork)."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, damaged: str = "error"):
         self.path = Path(path)
-        self._mcap = McapFile(self.path)
+        self._mcap = McapFile(self.path, damaged=damaged)
         self._by_topic = {c.topic: c for c in self._mcap.index.channels.values()}
 
     @classmethod
-    def open(cls, path: str | Path) -> Recording:
-        return cls(path)
+    def open(cls, path: str | Path, damaged: str = "error") -> Recording:
+        return cls(path, damaged)
 
     def close(self) -> None:
         self._mcap.close()
@@ -94,8 +109,9 @@ class Recording:
     # -- summary ---------------------------------------------------------------------------------
     @property
     def problems(self) -> list[str]:
-        """Damage found while indexing (empty for a sound file)."""
-        return list(self._mcap.index.problems)
+        """Damage found so far: on opening, and in the chunks read since (all of them with
+        damaged="skip" or "serve"). Empty for a sound file."""
+        return list(dict.fromkeys(self._mcap.index.problems))
 
     @cached_property
     def topics(self) -> dict[str, TopicInfo]:
@@ -125,21 +141,44 @@ class Recording:
     def has(self, topic: str) -> bool:
         return topic in self.topics and self.topics[topic].count > 0
 
-    def _channel(self, topic: str):
+    def _channel(self, topic: str, msgtype: str | None = None):
+        """The channel of `topic`, which must have messages, be CDR, and have the type the layout (or
+        `msgtype`) gives it."""
         channel = self._by_topic.get(topic)
         if channel is None or self.topics[topic].count == 0:
             raise FormatError(self.path, f"no messages on {topic}")
+        expected = msgtype or layout.RECORDING_TOPICS.get(topic) or layout.DERIVED_TOPICS.get(topic)
+        if expected and channel.msgtype != expected:
+            raise FormatError(self.path, f"{topic} has type '{channel.msgtype}', expected {expected}")
+        if channel.message_encoding != layout.MESSAGE_ENCODING:
+            raise FormatError(self.path, f"{topic} has message encoding '{channel.message_encoding}', expected "
+                                         f"{layout.MESSAGE_ENCODING}")
         return channel
+
+    def _decode(self, channel, payload, i: int):
+        try:
+            return decode(channel.msgtype, payload)
+        except _DECODE_ERRORS as exc:
+            raise FormatError(self.path, f"{channel.topic}: message {i} is not a valid {channel.msgtype} "
+                                         f"({exc})") from None
 
     def messages(self, topic: str, start: int = 0, stop: int | None = None):
         """Decoded messages of a topic, in log-time order: yields (log_time_ns, message)."""
         channel = self._channel(topic)
-        for log_time, payload in self._mcap.iter_payloads(channel.id, start, stop):
-            yield log_time, decode(channel.msgtype, payload)
+        for i, (log_time, payload) in enumerate(self._mcap.iter_payloads(channel.id, start, stop), start):
+            yield log_time, self._decode(channel, payload, i)
 
     def message(self, topic: str, i: int):
         channel = self._channel(topic)
-        return decode(channel.msgtype, self._mcap.payload(channel.id, i))
+        return self._decode(channel, self._mcap.payload(channel.id, i), i)
+
+    def payloads(self, topic: str, start: int = 0, stop: int | None = None):
+        """Undecoded messages of a topic (any encoding), in log-time order: yields (log_time_ns, payload
+        bytes or a view into the chunk)."""
+        channel = self._by_topic.get(topic)
+        if channel is None:
+            raise FormatError(self.path, f"no topic {topic}")
+        yield from self._mcap.iter_payloads(channel.id, start, stop)
 
     def log_times_ns(self, topic: str) -> np.ndarray:
         return self._mcap.index.messages[self._channel(topic).id].log_time_ns
@@ -263,20 +302,23 @@ class Recording:
     @cached_property
     def force(self) -> ForceSeries:
         """The whole force/torque series, sorted by header stamp."""
-        times, values = self._fixed_series(layout.WRENCH, decode_wrench_batch, 6)
+        times, values = self._fixed_series(layout.WRENCH, WrenchStamped.msgtype, decode_wrench_batch, 6)
         return ForceSeries(times, values, self.message(layout.WRENCH, 0).frame_id)
 
-    def _fixed_series(self, topic: str, decode_batch, width: int) -> tuple[np.ndarray, np.ndarray]:
+    def _fixed_series(self, topic: str, msgtype: str, decode_batch, width: int) -> tuple[np.ndarray, np.ndarray]:
         """Header stamps (N,) and values (N, width) of a fixed-size stamped topic, decoded chunk by
         chunk into preallocated arrays (a 30-minute 1 kHz series costs its 100 MB, not three times
         that), sorted by stamp."""
-        channel = self._channel(topic)
+        channel = self._channel(topic, msgtype)
         count = len(self._mcap.index.messages[channel.id])
         times = np.empty(count, dtype=np.int64)
         values = np.empty((count, width))
         filled = 0
         for matrix in self._mcap.iter_payload_matrices(channel.id):
-            t, v = decode_batch(matrix)
+            try:
+                t, v = decode_batch(matrix)
+            except _DECODE_ERRORS as exc:
+                raise FormatError(self.path, f"{topic}: messages are not valid {msgtype} ({exc})") from None
             times[filled:filled + len(t)] = t
             values[filled:filled + len(t)] = v
             filled += len(t)
@@ -293,7 +335,7 @@ class Recording:
 
     @cached_property
     def ecm_pose(self) -> PoseSeries:
-        times, values = self._fixed_series(layout.ECM_POSE, decode_pose_batch, 7)
+        times, values = self._fixed_series(layout.ECM_POSE, PoseStamped.msgtype, decode_pose_batch, 7)
         return PoseSeries(times, values[:, :3], values[:, 3:])
 
     def ecm_pose_at(self, times_ns, max_gap_ns: int = POSE_GAP_TOLERANCE_NS) -> tuple[np.ndarray, np.ndarray]:

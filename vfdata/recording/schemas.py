@@ -67,19 +67,13 @@ _DEPS: dict[str, list[str]] = {
 _SEPARATOR = "=" * 80
 
 
-def schema_name(short: str) -> str:
-    """'sensor_msgs/Image' -> 'sensor_msgs/msg/Image' (the ROS 2 name used for MCAP schemas)."""
-    package, name = short.split("/")
-    return f"{package}/msg/{name}"
-
-
 def schema_text(msgtype: str) -> str:
     """The concatenated ros2msg definition of `msgtype` ('pkg/msg/Type' or 'pkg/Type')."""
     short = msgtype.replace("/msg/", "/")
+    if short not in _DEFS:
+        raise ValueError(f"no ros2msg definition for {msgtype} (the layout's types: {', '.join(sorted(_DEPS))})")
     parts = [_DEFS[short]]
     for dep in _DEPS.get(short, []):
         parts.append(f"{_SEPARATOR}\nMSG: {dep}\n{_DEFS[dep]}")
     return "".join(parts)
 
-
-SUPPORTED_TYPES = sorted(schema_name(t) for t in _DEPS)
