@@ -98,6 +98,15 @@ class FrameResult:
     visible: np.ndarray | None  # (N,) bool
 
 
+def recorded_masks(ground_truth: Path) -> Iterator[np.ndarray]:
+    """The simulator's true tissue masks, frame by frame."""
+    for path in sorted((Path(ground_truth) / "mask").glob("*.png")):
+        data = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if data is None:
+            raise InputError(path, "not a readable mask PNG")
+        yield data > 127
+
+
 def recorded_depths(ground_truth: Path) -> Iterator[np.ndarray]:
     """The simulator's true depth maps (mm, NaN unknown), frame by frame."""
     for path in sorted((Path(ground_truth) / "depth").glob("*.png")):
@@ -122,7 +131,7 @@ class FrameEngine:
         self.prompt.check_inside(camera.width, camera.height)
         self.up, self.ground_truth = up, ground_truth
         self.depth = make_depth_estimator(self.options.depth, **self._depth_options())
-        self.segmenter = make_segmenter(self.options.segment, **self.options.segment_options)
+        self.segmenter = make_segmenter(self.options.segment, **self._segment_options())
         self.clock = StageClock()
         self.frame: ObjectFrame | None = None
         self.origin_cut = False
@@ -140,6 +149,15 @@ class FrameEngine:
                 raise InputError(Path("ground_truth"), "depth 'recorded' needs the simulator's ground_truth/ "
                                                        "(--ground-truth DIR, or beside the raw folder)")
             options.setdefault("depths", recorded_depths(self.ground_truth))
+        return options
+
+    def _segment_options(self) -> dict:
+        options = dict(self.options.segment_options)
+        if self.options.segment == "recorded":
+            if self.ground_truth is None:
+                raise InputError(Path("ground_truth"), "segment 'recorded' needs the simulator's ground_truth/ "
+                                                       "(--ground-truth DIR, or beside the raw folder)")
+            options.setdefault("masks", recorded_masks(self.ground_truth))
         return options
 
     @property

@@ -27,7 +27,7 @@ from vfdata.manifest import ManifestEntry
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedRecording
 
-CACHE_VERSION = 2  # bump when the decoded arrays change for the same spec
+CACHE_VERSION = 3  # bump when the decoded arrays change for the same spec
 
 
 @dataclass
@@ -140,14 +140,18 @@ def _decode_ground_truth(entry: ManifestEntry, spec: ClipSpec) -> Decoded:
         clouds = (p[v] for p, v in zip(points_obj, visible, strict=True))
         points, valid = _cloud_draws(spec, clouds, rotation, origin)
         return Decoded(times_ns, force, points, valid)
-    # a fixed subset of the material points stands in for the tracked points
+    # a fixed subset of the material points stands in for the tracked points: among those the first
+    # frame shows (as tracking starts from them), or from the whole surface, all valid
+    surface = spec.source == "ground_truth_surface"
+    pool = np.arange(points_obj.shape[1]) if surface else np.flatnonzero(visible[0])
     rng = np.random.default_rng(spec.seed)
-    keep = np.sort(rng.choice(points_obj.shape[1], size=min(spec.num_points, points_obj.shape[1]), replace=False))
-    return _tokens(spec, times_ns, points_obj[:, keep], visible[:, keep], force, rotation, origin)
+    keep = np.sort(rng.choice(pool, size=min(spec.num_points, len(pool)), replace=False))
+    valid = np.ones((len(points_obj), len(keep)), bool) if surface else visible[:, keep]
+    return _tokens(spec, times_ns, points_obj[:, keep], valid, force, rotation, origin)
 
 
 def _source_files(entry: ManifestEntry, spec: ClipSpec) -> list[Path]:
-    if spec.source == "ground_truth":
+    if spec.source != "processed":
         return [entry.raw / "frames.csv", entry.ground_truth / "points.npy", entry.ground_truth / "force.npy"]
     return [entry.mcap] if spec.input == "rgb" else [entry.mcap, entry.processed]
 
@@ -169,7 +173,7 @@ def decode_recording(entry: ManifestEntry, spec: ClipSpec, cache_dir: str | Path
             decoded = Decoded(z["times_ns"], z["force_n"], z["inputs"], z["valid"] if "valid" in z else None,
                               float(z["side"]))
         return decoded.window(entry.frames)
-    decode = _decode_ground_truth if spec.source == "ground_truth" else _decode_processed
+    decode = _decode_processed if spec.source == "processed" else _decode_ground_truth
     decoded = decode(entry, spec)
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)

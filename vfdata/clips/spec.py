@@ -5,12 +5,12 @@ live estimator, and saved in every checkpoint, so a model always sees what it wa
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from vfdata.errors import VisionForceError
 
 Input = Literal["tracks", "cloud", "rgb", "depth"]
-Source = Literal["processed", "ground_truth"]
+Source = Literal["processed", "ground_truth", "ground_truth_surface"]
 Frame = Literal["object", "camera"]
 Features = Literal["pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel"]
 Subset = Literal["all", "top_bottom_20"]
@@ -27,8 +27,10 @@ class ClipSpec:
         input: tracks (the tracked points, default), cloud (points drawn from the tissue cloud, no
             correspondences), rgb (the left image; the RGB baseline) or depth (the tissue-masked depth;
             the depth ViT baseline).
-        source: processed (the derived MCAPs of `vfdata process`) or ground_truth (the simulator's
-            true material points, for developing models before tracking).
+        source: processed (the derived MCAPs of `vfdata process`), ground_truth (the simulator's true
+            material points among those visible on the first frame, valid where visible, in the true
+            object frame) or ground_truth_surface (true points from the whole surface, all valid: what no
+            camera sees). The two simulator sources are the top rungs of the attribution ladder.
         frame: object (the object-centred frame, default) or camera (the left camera frame).
         features: per-point channels, each a 3-vector: pos_vel (position mm + velocity mm/s, the
             paper's), pos, vel, disp_vel (displacement from the point's position on the recording's
@@ -65,9 +67,10 @@ class ClipSpec:
     mirror_augment: bool = False
 
     def __post_init__(self) -> None:
-        choices = {"input": INPUT_KEYS, "source": ("processed", "ground_truth"), "frame": ("object", "camera"),
-                   "features": FEATURE_CHANNELS, "subset": ("all", "top_bottom_20")}
-        for name, allowed in choices.items():
+        # jsonargparse checks the Literal types on the command line; this checks them in Python too
+        choices = {"input": Input, "source": Source, "frame": Frame, "features": Features, "subset": Subset}
+        for name, kind in choices.items():
+            allowed = get_args(kind)
             if getattr(self, name) not in allowed:
                 raise VisionForceError(f"{name} '{getattr(self, name)}' is not one of {', '.join(allowed)}")
         if self.clip_frames < 1 or self.stride < 1:

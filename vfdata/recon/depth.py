@@ -307,8 +307,7 @@ class RecordedDepth(DepthEstimator):
     def __init__(self, depths: Iterable[np.ndarray] | None = None):
         self._queue: collections.deque[np.ndarray] = collections.deque()
         self._consumed = 0
-        for depth in depths or ():
-            self.supply(depth)
+        self._source = iter(depths) if depths is not None else None  # read lazily: a video of maps is GBs
 
     def supply(self, depth_mm: np.ndarray) -> None:
         """Append the next frame's depth map (H, W) in mm."""
@@ -320,6 +319,10 @@ class RecordedDepth(DepthEstimator):
     def depth_mm(
         self, left: np.ndarray, right: np.ndarray, camera: PinholeCamera, baseline_mm: float
     ) -> np.ndarray:
+        if not self._queue and self._source is not None:
+            depth = next(self._source, None)
+            if depth is not None:
+                self.supply(depth)
         if not self._queue:
             raise BackendError(
                 f"recorded: no depth map supplied for frame {self._consumed} (the recording has no depth "

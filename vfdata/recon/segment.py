@@ -8,6 +8,8 @@ A segmenter (`vfdata.recon.segmenter.Segmenter`) is a small state machine over a
   prompt, then a colour model, a flow-carried prior and a depth cue per frame.
 - `sam2` (`vfdata.recon.sam2_segmenter`): Meta's SAM2 video predictor from the user's local config
   and checkpoint.
+- `recorded`: masks supplied with the recording (the simulator's true masks), passed through; for
+  measuring what the segmentation costs (the attribution ladder, docs/results.md).
 
 Prompts (`vfdata.recon.prompt.Prompt`): a box and/or positive and negative points, from the command
 line (`Prompt.parse`), the recording's metadata (`prompt_box`) or a detector
@@ -22,7 +24,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from vfdata.errors import BackendError
+from vfdata.errors import BackendError, InputError
 from vfdata.recon.colortrack import ColorTrackSegmenter, ColorTrackSettings
 from vfdata.recon.detector import DetectorPrompt
 from vfdata.recon.prompt import Prompt
@@ -43,7 +45,35 @@ __all__ = [
     "segment_video",
 ]
 
-SEGMENT_BACKENDS = {"colortrack": ColorTrackSegmenter, "sam2": Sam2Segmenter}
+class RecordedMasks(Segmenter):
+    """Masks given in frame order (`masks=`, an iterable of (H, W) bool arrays, read lazily), one per
+    `start`/`track` call; the prompt is not used."""
+
+    name = "recorded"
+
+    def __init__(self, masks: Iterable[np.ndarray]):
+        self._masks = iter(masks)
+        self._consumed = 0
+
+    def _next(self, image: np.ndarray) -> np.ndarray:
+        mask = next(self._masks, None)
+        if mask is None:
+            raise BackendError(f"recorded: no mask supplied for frame {self._consumed}")
+        self._consumed += 1
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != image.shape[:2]:
+            raise InputError("recorded mask", f"frame {self._consumed - 1}: mask {mask.shape} but image "
+                                              f"{image.shape[:2]}")
+        return mask
+
+    def start(self, image: np.ndarray, prompt: Prompt, depth_mm: np.ndarray | None = None) -> np.ndarray:
+        return self._next(image)
+
+    def track(self, image: np.ndarray, depth_mm: np.ndarray | None = None) -> np.ndarray:
+        return self._next(image)
+
+
+SEGMENT_BACKENDS = {"colortrack": ColorTrackSegmenter, "sam2": Sam2Segmenter, "recorded": RecordedMasks}
 
 
 def make_segmenter(name: str = "colortrack", **options) -> Segmenter:

@@ -6,7 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vfmodels.experiment.variants import EXTRA_VARIANTS, PAPER_VARIANTS, SIMULATOR_VARIANTS
+from vfmodels.experiment.variants import (
+    EXTRA_VARIANTS,
+    LADDER_MODELS,
+    PAPER_VARIANTS,
+    SIMULATOR_VARIANTS,
+    VISIONFORCE_VARIANTS,
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -15,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Converts and processes every recording of the manifest (once per tracker needed; existing "
                     "outputs are kept), trains and tests each variant with each seed (finished runs are not "
                     "repeated), and writes Tables I-III, the timing table and the figures into OUT. Variants: "
+                    + ", ".join(VISIONFORCE_VARIANTS) + " (the project's pipeline) and the paper's "
                     + ", ".join(PAPER_VARIANTS) + "; on simulated recordings, only when named: "
                     + ", ".join(SIMULATOR_VARIANTS) + " (the simulator's true tracks); beyond the paper, "
                     "only when named: " + ", ".join(EXTRA_VARIANTS) + ".")
@@ -23,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", type=int, default=3, help="seeds per variant (default 3)")
     p.add_argument("--epochs", type=int, help="training epochs (default: the config's)")
     p.add_argument("--variants", nargs="+", metavar="NAME", help="only these variants (default: the paper's grid)")
+    p.add_argument("--ladder", action="store_true",
+                   help="simulated recordings: also the attribution ladder for " + ", ".join(LADDER_MODELS)
+                        + " (each stage replaced by the simulator's truth in turn; ladder.md)")
     p.add_argument("--configs", type=Path, help="folder of the training configs (default: the repository's configs/)")
     p.add_argument("--depth", default="sgbm", help="depth backend for processing (default sgbm)")
     p.add_argument("--segment", default="colortrack", help="mask backend for processing (default colortrack)")
@@ -47,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     if args.reports_only:
         print(summary_text(write_reports(args.out, args.manifest)))
         return 0
-    options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants, depth=args.depth,
+    options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants, ladder=args.ladder,
+                                depth=args.depth,
                                 segment=args.segment, prompt=args.prompt, workers=args.workers,
                                 max_frames=args.max_frames, progress=not args.quiet, train_args=args.train_args)
     if args.configs is not None:

@@ -17,7 +17,7 @@ from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
-from vfmodels.experiment.variants import derived_name
+from vfmodels.experiment.variants import PROCESSINGS, derived_name
 
 
 @dataclass(frozen=True)
@@ -65,15 +65,19 @@ def process(job: ProcessJob) -> str:
 def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgbm", segment: str = "colortrack",
             prompt: str | None = None, max_frames: int | None = None, workers: int = 1,
             progress: bool = True) -> dict[str, float]:
-    """Convert what is missing, then process every recording for each tracker (skipping outputs that
-    exist; `prompt` for entries without their own). Returns wall seconds per step."""
+    """Convert what is missing, then process every recording for each processing (`PROCESSINGS` key;
+    outputs that exist are kept; `prompt` for entries without their own). Returns wall seconds per step."""
     seconds = {}
     started = time.perf_counter()
     for entry in tqdm(entries, desc="convert", unit="recording", disable=not progress):
         convert(entry)
     seconds["convert"] = time.perf_counter() - started
-    jobs = [ProcessJob(str(e.mcap), str(derived_path(e, t)), t, depth, segment, e.prompt or prompt, max_frames)
-            for t in trackers for e in entries if not derived_path(e, t).is_file()]
+    jobs = []
+    for name in trackers:
+        recipe = PROCESSINGS[name]
+        jobs += [ProcessJob(str(e.mcap), str(derived_path(e, name)), recipe.tracker, recipe.depth or depth,
+                            recipe.segment or segment, e.prompt or prompt, max_frames)
+                 for e in entries if not derived_path(e, name).is_file()]
     started = time.perf_counter()
     with tqdm(total=len(jobs), desc="process", unit="recording", disable=not progress or not jobs) as bar:
         if workers > 1 and len(jobs) > 1:

@@ -32,8 +32,10 @@ from tqdm import tqdm
 from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfmodels.experiment.prepare import derived_path, prepare
-from vfmodels.experiment.report import run_metrics, write_reports
-from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, Variant
+from vfmodels.experiment.report import write_reports
+from vfmodels.experiment.ridge_run import run_ridge
+from vfmodels.experiment.runs import run_folder, write_run
+from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant
 from vfmodels.prediction_writer import PredictionCollector
 from vfmodels.regressor import ForceRegressor
 from vfmodels.train import best_checkpoint, make_cli
@@ -46,6 +48,7 @@ class ExperimentOptions:
     seeds: int = 3
     epochs: int | None = None  # None: the config's
     variants: list[str] | None = None  # None: DEFAULT_VARIANTS; the others only by name
+    ladder: bool = False  # also the attribution ladder (LADDER: simulator recordings only)
     configs: Path = CONFIGS
     depth: str = "sgbm"
     segment: str = "colortrack"
@@ -56,7 +59,9 @@ class ExperimentOptions:
     progress: bool = True
 
     def chosen(self) -> list[Variant]:
-        names = self.variants or list(DEFAULT_VARIANTS)
+        names = list(self.variants or DEFAULT_VARIANTS)
+        if self.ladder:
+            names += [n for n in LADDER if n not in names]
         unknown = [n for n in names if n not in ALL_VARIANTS]
         if unknown:
             raise VisionForceError(f"unknown variant(s) {', '.join(unknown)} (known: {', '.join(ALL_VARIANTS)})")
@@ -108,11 +113,13 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     config = options.configs / variant.config
     if not config.is_file():
         raise InputError(config, f"config of variant '{variant.name}' not found")
+    if variant.kind == "ridge":
+        return run_ridge(variant, seed, config, manifest, run_dir, cache_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     args = [f"--config={config}", f"--data.manifest={manifest}", f"--seed_everything={seed}",
             f"--trainer.default_root_dir={run_dir}", "--trainer.enable_progress_bar=false",
             "--trainer.enable_model_summary=false", "--data.progress=false",
-            f"--data.cache_dir={cache_dir}", *options.train_args]
+            f"--data.cache_dir={cache_dir}", *variant.overrides, *options.train_args]
     if options.epochs is not None:
         args.append(f"--trainer.max_epochs={options.epochs}")
     started = time.perf_counter()
@@ -127,24 +134,13 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     regressor = ForceRegressor.load(best)
     cli.datamodule.setup("test")
     predictions, force_fps = test_predictions(regressor, cli.datamodule.test_dataloader())
-    np.savez_compressed(run_dir / "predictions.npz", **predictions)
-    metrics = run_metrics(predictions)
     summary = {
         "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config),
         "checkpoint": str(Path(best).resolve()), "epochs": cli.trainer.current_epoch,
         "setup_seconds": round(setup_seconds, 1), "train_seconds": round(train_seconds, 1),
-        "test_frames": int(len(predictions["true"])), "force_fps": force_fps, "torch_threads": torch.get_num_threads(),
-        "pooled": metrics["pooled"], "mean": metrics["mean"], "std": metrics["std"],
-        "groups": {str(k): v for k, v in metrics["groups"].items()},
+        "force_fps": force_fps, "torch_threads": torch.get_num_threads(),
     }
-    tmp = run_dir / "metrics.json.partial"
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(run_dir / "metrics.json")
-    return summary
-
-
-def run_folder(out: Path, variant: Variant, seed: int) -> Path:
-    return out / "runs" / variant.name / f"seed{seed}"
+    return write_run(run_dir, predictions, summary)
 
 
 @dataclass

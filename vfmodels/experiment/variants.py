@@ -1,5 +1,5 @@
-"""The rows of the force tables: each variant is a training config, the tracker whose tracks it
-reads, and the table it belongs to. Plain data (no torch), so the command line can list them."""
+"""The rows of the force tables: each variant is a training config (with overrides), the processed
+files it reads, and the table it belongs to. Plain data (no torch), so the command line can list them."""
 
 from __future__ import annotations
 
@@ -7,21 +7,45 @@ from dataclasses import dataclass
 
 
 @dataclass(frozen=True)
+class Processing:
+    """How a recording's derived file for some variants is made, and its name (`<id><suffix>`)."""
+
+    suffix: str
+    tracker: str = "geometry"
+    depth: str | None = None  # None: the experiment's --depth
+    segment: str | None = None  # None: the experiment's --segment
+
+
+PROCESSINGS: dict[str, Processing] = {
+    "geometry": Processing(".processed.mcap"),
+    "klt": Processing(".klt.mcap", "klt"),
+    "geometry+": Processing(".geometry_plus.mcap", "geometry+"),
+    "groundtruth": Processing(".gt.mcap", "groundtruth"),
+    # the simulator's true depth and mask, our object frame and geometry tracker (a ladder rung)
+    "truedepth": Processing(".truedepth.mcap", "geometry", depth="recorded", segment="recorded"),
+}
+
+
+@dataclass(frozen=True)
 class Variant:
-    """One row of the force tables (I: the proposed model against the image baselines; II: ablations)."""
+    """One row of the force tables (I: the models against the image baselines; II: ablations)."""
 
     name: str
     label: str
     config: str  # relative to configs/
-    tracker: str = "geometry"
+    tracker: str = "geometry"  # a key of PROCESSINGS: which derived files it reads
     table: str = "II"
+    overrides: tuple[str, ...] = ()  # extra LightningCLI arguments, e.g. "--data.spec.source=ground_truth"
+    kind: str = "network"  # "network" (LightningCLI) or "ridge" (vfmodels.ridge on the config's tokens)
 
 
 # The project's own pipeline, the default for users: the paper's network on deformation tokens with the
-# tube's mirror symmetry (docs/results.md), and its camera-frame twin for the object-frame claim.
+# tube's mirror symmetry (docs/results.md), its camera-frame twin, and the fast ridge model on its tokens.
 VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("visionforce", "VisionForce (displacement tokens, mirror symmetry)", "visionforce.yaml", table="I+II"),
     Variant("visionforce_camera_frame", "VisionForce, camera frame", "visionforce_camera_frame.yaml"),
+    Variant("ridge", "Ridge on VisionForce's tokens (pooled moments, seconds to train)", "visionforce.yaml",
+            kind="ridge"),
 )}
 
 # The paper's grid: `proposed` is the paper's method, faithfully; the ablations and baselines around it.
@@ -37,10 +61,9 @@ PAPER_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("depth_vit", "Masked depth + ViT-Small", "baseline_depth_vit.yaml", table="I"),
 )}
 
-# Upper bounds that read the simulator's ground-truth tracks (tracker `groundtruth`: the true material
-# positions of the same 256 points the geometry tracker starts from, visibility from the estimated
-# mask, object frame estimated as for the proposed model). They separate the tracker's errors from the
-# representation's. Only on request: they need `ground_truth/` beside every raw folder.
+# Upper bounds that read the simulator's ground-truth tracks (the true material positions of the same
+# 256 points the geometry tracker starts from, visibility from the estimated mask, object frame
+# estimated). Only on request: they need `ground_truth/` beside every raw folder.
 SIMULATOR_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("groundtruth", "Ground-truth tracks (simulator upper bound)", "proposed.yaml", tracker="groundtruth"),
     Variant("camera_frame_groundtruth", "Camera frame, ground-truth tracks", "ablation_camera_frame.yaml",
@@ -56,12 +79,39 @@ EXTRA_VARIANTS: dict[str, Variant] = {v.name: v for v in (
             tracker="geometry+"),
 )}
 
-ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS}
-DEFAULT_VARIANTS: tuple[str, ...] = (*VISIONFORCE_VARIANTS, *PAPER_VARIANTS)
+# The attribution ladder (`vfdata experiment --ladder`, simulator only): the same model and split with
+# each stage's output replaced by the simulator's truth in turn, from the top rung down to the real
+# pipeline (the model's own variant).
+LADDER_RUNGS: dict[str, tuple[str, tuple[str, ...], str]] = {
+    # rung: (processing, overrides, label)
+    "surface": ("geometry", ("--data.spec.source=ground_truth_surface",), "true points on the whole surface"),
+    "visible": ("geometry", ("--data.spec.source=ground_truth",), "true points visible in frame 0, true frame"),
+    "truetracks": ("groundtruth", (), "true tracks, our depth, mask and object frame"),
+    "truedepth": ("truedepth", (), "true depth and mask, our object frame and tracker"),
+}
+LADDER_MODELS = ("visionforce", "proposed", "ridge")
 
-# Derived file name per tracker (a manifest's `processed:` points the datasets at it).
-TRACKER_SUFFIX = {"geometry": ".processed.mcap", "klt": ".klt.mcap", "geometry+": ".geometry_plus.mcap",
-                  "groundtruth": ".gt.mcap"}
+
+def _ladder() -> dict[str, Variant]:
+    base = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS}
+    variants = {}
+    for model in LADDER_MODELS:
+        v = base[model]
+        for rung, (processing, overrides, label) in LADDER_RUNGS.items():
+            variants[f"{model}@{rung}"] = Variant(f"{model}@{rung}", f"{v.label.split(' (')[0]}: {label}", v.config,
+                                                  processing, "ladder", overrides, v.kind)
+    return variants
+
+
+LADDER_VARIANTS: dict[str, Variant] = _ladder()
+
+ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS,
+                                    **LADDER_VARIANTS}
+DEFAULT_VARIANTS: tuple[str, ...] = (*VISIONFORCE_VARIANTS, *PAPER_VARIANTS)
+LADDER: tuple[str, ...] = (*LADDER_VARIANTS, *LADDER_MODELS)
+
+# Derived file name per processing (a manifest's `processed:` points the datasets at it).
+TRACKER_SUFFIX = {name: p.suffix for name, p in PROCESSINGS.items()}
 
 
 def derived_name(recording_id: str, tracker: str) -> str:

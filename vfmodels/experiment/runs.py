@@ -1,0 +1,29 @@
+"""A finished run's folder: `OUT/runs/<variant>/seed<k>/` with predictions.npz (the test frames:
+recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and metrics.json, written last."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from vfmodels.experiment.variants import Variant
+from vfmodels.reports.tables import run_metrics
+
+
+def run_folder(out: Path, variant: Variant, seed: int) -> Path:
+    return out / "runs" / variant.name / f"seed{seed}"
+
+
+def write_run(run_dir: Path, predictions: dict[str, np.ndarray], summary: dict) -> dict:
+    """predictions.npz, then metrics.json (written last: the marker of a finished run)."""
+    np.savez_compressed(run_dir / "predictions.npz", **predictions)
+    metrics = run_metrics(predictions)
+    groups = {str(k): v for k, v in metrics["groups"].items()}
+    summary = {**summary, "test_frames": int(len(predictions["true"])), "pooled": metrics["pooled"],
+               "mean": metrics["mean"], "std": metrics["std"], "groups": groups}
+    tmp = run_dir / "metrics.json.partial"
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(run_dir / "metrics.json")
+    return summary
