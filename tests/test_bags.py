@@ -27,14 +27,22 @@ from rosbags.typesys import Stores, get_typestore
 
 from vfdata.cli import main
 from vfdata.commands.inspect_bag import inspect_bag_text
-from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, image_messages, ros_images
+from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, image_messages, ros_images, write_recording
 from vfdata.conversion.bag_topics import BagTopics
-from vfdata.conversion.bags import convert_bag, stamped_payload_table
+from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recording import layout
+from vfdata.recording.cdr import CdrError
 from vfdata.recording.inspect import check_file
-from vfdata.recording.messages import CameraInfo, CompressedImage, PoseStamped, WrenchStamped
+from vfdata.recording.messages import (
+    CameraInfo,
+    CompressedImage,
+    PoseStamped,
+    WrenchStamped,
+    decode_stamped_batch,
+    encode_stamped_batch,
+)
 from vfdata.recording.reader import Recording
 from vfdata.recording.writer import McapWriter
 
@@ -331,17 +339,21 @@ def test_raw_image_decoding():
         ros_images.compressed_format("16UC1; compressedDepth png")
 
 
-def test_stamped_payloads_match_message_encoding():
+def test_stamped_batch_codec_matches_message_encoding():
+    """The numpy batch codec, both ways, against the one-message CDR encoder (the converters write with
+    it, the reader and the bag scan read with it)."""
     rng = np.random.default_rng(1)
     stamps = np.array([1_700_000_000_123_456_789, 5, 3 * 10**9 + 7])
     for frame_id in ("", "a", "ati_sensor", "abcdefg", "world"):
-        wrench, pose = rng.normal(size=(3, 6)), rng.normal(size=(3, 7))
-        assert bags.stamped_payloads(stamps, frame_id, wrench) == [
-            WrenchStamped(int(t), frame_id, tuple(w[:3]), tuple(w[3:])).encode() for t, w in zip(stamps, wrench,
-                                                                                                   strict=True)]
-        assert bags.stamped_payloads(stamps, frame_id, pose) == [
-            PoseStamped(int(t), frame_id, tuple(p[:3]), tuple(p[3:])).encode() for t, p in zip(stamps, pose,
-                                                                                                 strict=True)]
+        for cls, width in ((WrenchStamped, 6), (PoseStamped, 7)):
+            values = rng.normal(size=(3, width))
+            table = encode_stamped_batch(stamps, frame_id, values)
+            assert [row.tobytes() for row in table] == [
+                cls(int(t), frame_id, tuple(v[:3]), tuple(v[3:])).encode() for t, v in zip(stamps, values, strict=True)]
+            got_stamps, got_values = decode_stamped_batch(table, width)
+            assert got_stamps.tolist() == stamps.tolist() and np.array_equal(got_values, values)
+    with pytest.raises(CdrError, match="frame_id length"):
+        decode_stamped_batch(encode_stamped_batch(stamps, "ati", rng.normal(size=(3, 7))), 6)
 
 
 def test_pair_stamps_mutual_nearest_within_tolerance():
@@ -888,11 +900,11 @@ def test_payload_helpers_match_message_encoding():
                       np.hstack([np.eye(3), np.ones((3, 1))]), 0, 0, (0, 0, 0, 0, False))
     stamp = 1_700_000_000_987_654_321
     expect = CameraInfo(**{**info.__dict__, "stamp_ns": stamp}).encode()
-    assert bags.restamped(info.encode(), stamp) == expect
+    assert write_recording.restamped(info.encode(), stamp) == expect
     for frame in ("", "a", "stereo_left_optical"):
         for fmt in ("jpeg", "png"):
             data = np.arange(11, dtype=np.uint8).reshape(-1, 1)  # cv2.imencode's shape
-            assert bags.compressed_image_payload(stamp, frame, fmt, data) == CompressedImage(
+            assert write_recording.compressed_image_payload(stamp, frame, fmt, data) == CompressedImage(
                 stamp, frame, fmt, data.tobytes()).encode()
 
 
@@ -901,7 +913,7 @@ def test_write_payloads_equals_one_write_per_message(tmp_path):
     `write_payload` per message, chunk boundaries included."""
     rng = np.random.default_rng(0)
     stamps = np.sort(rng.integers(10**18, 2 * 10**18, 700))
-    table = stamped_payload_table(stamps, "ati", rng.normal(size=(700, 6)))
+    table = encode_stamped_batch(stamps, "ati", rng.normal(size=(700, 6)))
     for kwargs in ({"separate_topics": ("/f",), "separate_batch": 64}, {"chunk_size": 5000}):
         for name, bulk in (("one.mcap", False), ("bulk.mcap", True)):
             with McapWriter(tmp_path / name, overwrite=True, **kwargs) as writer:

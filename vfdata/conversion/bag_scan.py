@@ -32,7 +32,7 @@ from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError
 from vfdata.recording.cdr import CdrError
-from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, decode_wrench_batch
+from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_stamped_batch, stamped_batch_frame_id
 
 log = logging.getLogger(__name__)
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -451,35 +451,17 @@ def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2
     `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes), and their one
     frame_id; None when they do not fit that layout."""
     if isinstance(payloads, list):
-        length = len(payloads[0])
-        if any(len(raw) != length for raw in payloads):
+        if not payloads or any(len(raw) != len(payloads[0]) for raw in payloads):
             return None
-        table = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
-    else:
-        table = payloads
-    count, length = table.shape
-    # One frame_id for the whole block (its length and bytes after the stamp), as the caller assumes.
-    name_length = int(table[0, 12:16].copy().view("<u4")[0]) if length >= 16 else 0
-    name = slice(12, 16 + name_length)
-    if length < 16 or 16 + name_length > length or (table[:, name] != table[0, name]).any():
+        payloads = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), -1)
+    frame_id = stamped_batch_frame_id(payloads)
+    if frame_id is None:
         return None
-    try:  # CDR strings end with a NUL that ROS 1 strings do not have
-        frame_id = table[0, 16:16 + name_length].tobytes().rstrip(b"\0").decode("utf-8")
-    except UnicodeDecodeError:
+    try:
+        stamps, values = decode_stamped_batch(payloads, n_doubles, ros1=not ros2)
+    except CdrError:
         return None
-    if ros2:
-        try:
-            stamps, values = (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
-        except CdrError:
-            return None
-        return stamps, values, frame_id
-    # ROS 1: uint32 seq, uint32 sec, uint32 nsec, uint32 length + frame_id, float64s (no alignment).
-    if 16 + name_length + 8 * n_doubles != length:
-        return None
-    sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
-    nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
-    values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * NS_PER_S + nanosec, values, frame_id
+    return stamps, values, frame_id
 
 
 def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:

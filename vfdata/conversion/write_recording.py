@@ -1,0 +1,158 @@
+"""The converters' one write loop: a recording MCAP (layout v1) from stereo frames encoded on a thread
+pool, written in frame order with the camera infos of each frame and the force and pose series
+interleaved by stamp. The raw-folder and the bag converters differ only in where the frames, the
+series and the camera model come from."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from vfdata.calibration import StereoCalibration
+from vfdata.conversion.options import ConvertOptions
+from vfdata.conversion.ordered_map import ordered_map
+from vfdata.recording import layout
+from vfdata.recording.messages import (
+    NS_PER_S,
+    CameraInfo,
+    CompressedImage,
+    TFMessage,
+    TransformStamped,
+    encode_stamped_batch,
+)
+from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
+
+T = TypeVar("T")
+_STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
+_U32 = struct.Struct("<I")
+
+
+@dataclass(frozen=True)
+class StampedSeries:
+    """A force or pose series to write: sorted stamps (N,) int ns, values (N, 6) wrench (N, N*m) or
+    (N, 7) pose (m, quaternion xyzw), one frame id."""
+
+    topic: str
+    msgtype: str
+    stamps_ns: np.ndarray
+    values: np.ndarray
+    frame_id: str
+
+
+# -- the camera model ---------------------------------------------------------------------------------
+def camera_infos(calib: StereoCalibration, stamp_ns: int) -> tuple[CameraInfo, CameraInfo]:
+    """ROS CameraInfo of both views: raw K and D, rectifying R, rectified P (right P[0,3] = -fx*B, m)."""
+    rect = calib.rectified
+    p2 = rect.P2.copy()
+    p2[0, 3] *= 1e-3  # ROS: metres
+    infos = []
+    for frame, K, D, R, P in (
+        (layout.LEFT_FRAME, calib.K1, calib.D1, rect.R1, rect.P1),
+        (layout.RIGHT_FRAME, calib.K2, calib.D2, rect.R2, p2),
+    ):
+        model = "plumb_bob" if len(D) <= 5 else "rational_polynomial"
+        d = np.zeros(5 if len(D) <= 5 else 8)
+        d[: len(D)] = D
+        infos.append(CameraInfo(stamp_ns, frame, calib.height, calib.width, model, d, K, R, P))
+    return infos[0], infos[1]
+
+
+def stereo_tf(calib: StereoCalibration, stamp_ns: int) -> TFMessage:
+    """left -> right optical frame of the rectified pair: the right camera sits `baseline` along +x."""
+    baseline_m = calib.rectified.baseline_mm * 1e-3
+    return TFMessage([
+        TransformStamped(stamp_ns, layout.LEFT_FRAME, layout.RIGHT_FRAME, (baseline_m, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))
+    ])
+
+
+# -- payloads -----------------------------------------------------------------------------------------
+def restamped(payload: bytes, stamp_ns: int) -> bytes:
+    """A CDR payload of a message that starts with a std_msgs/Header, with header.stamp set to
+    `stamp_ns` (sec and nanosec are bytes 4..12, after the encapsulation header)."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return payload[:4] + _STAMP.pack(sec, nanosec) + payload[12:]
+
+
+def compressed_image_payload(stamp_ns: int, frame_id: str, fmt: str, data: bytes | np.ndarray) -> bytes:
+    """`CompressedImage(stamp_ns, frame_id, fmt, data).encode()`, with one copy of `data` instead of three."""
+    head = CompressedImage(stamp_ns, frame_id, fmt, b"").encode()[:-4]  # ends with the data length, 0
+    return b"".join((head, _U32.pack(len(data)), memoryview(data).cast("B")))
+
+
+def encode_image(image: np.ndarray, options: ConvertOptions) -> np.ndarray | None:
+    """BGR pixels -> the encoded image of `options.image_format` (JPEG at its quality, or PNG at the
+    fast compression level 1); None when OpenCV cannot encode it."""
+    if options.image_format == "jpeg":
+        ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality])
+    else:
+        ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    return data if ok else None
+
+
+# -- the write loop -----------------------------------------------------------------------------------
+class _SeriesWriter:
+    """Writes a force or pose series in stamp order as the frames go by: `write_until(stamp)` makes sure
+    every sample up to `stamp` is written. At 1 kHz the per-call costs add up, so samples are encoded
+    and written `batch` at a time, whenever that many are due (the series has chunks of its own in the
+    file, `McapWriter(separate_topics=...)`, so waiting a few frames moves nothing in the file)."""
+
+    def __init__(self, writer: McapWriter, series: StampedSeries, batch: int):
+        self.writer, self.series, self.batch, self.done = writer, series, batch, 0
+
+    def write_until(self, stamp_ns: int | None) -> None:
+        """The samples up to `stamp_ns` once `batch` of them are due; every remaining one for None."""
+        series = self.series
+        stamps = series.stamps_ns
+        stop = len(stamps) if stamp_ns is None else int(np.searchsorted(stamps, stamp_ns, side="right"))
+        if stop - self.done < (1 if stamp_ns is None else self.batch):
+            return
+        for start in range(self.done, stop, 8 * self.batch):  # a bounded table even for a long gap
+            rows = slice(start, min(stop, start + 8 * self.batch))
+            self.writer.write_payloads(series.topic, series.msgtype, stamps[rows],
+                                       encode_stamped_batch(stamps[rows], series.frame_id, series.values[rows]))
+        self.done = stop
+
+
+def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record: layout.RecordingMeta,
+                    infos: tuple[CameraInfo, CameraInfo], tf: TFMessage, frame_ns: np.ndarray,
+                    frames: Iterable[T], encode: Callable[[T], tuple[bytes, bytes]],
+                    series: list[StampedSeries], name: str, series_batch: int = 512) -> None:
+    """Write the recording to `out` (atomically: nothing is left on any error).
+
+    `frames` yields one item per stereo frame, in frame order; `encode(item)` (called on the encoding
+    threads) turns item k into the CompressedImage payloads of its left and right image, stamped
+    `frame_ns[k]`. The camera infos (restamped each frame) and the transform (stamped with the first
+    frame) come from the camera model. `name` labels the progress bar."""
+    first = int(frame_ns[0])
+    for transform in tf.transforms:
+        transform.stamp_ns = first
+    # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
+    info_payloads = ((layout.LEFT_INFO, infos[0].encode()), (layout.RIGHT_INFO, infos[1].encode()))
+    workers = max(1, options.workers)
+    with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
+                    separate_topics=(layout.WRENCH, layout.ECM_POSE), chunk_level=IMAGE_LEVEL) as writer, \
+            ThreadPoolExecutor(workers) as pool:
+        writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
+        writer.write(layout.TF_STATIC, tf)
+        # Samples up to each frame's stamp are written before it, so the file is in time order.
+        series_writers = [_SeriesWriter(writer, s, series_batch) for s in series]
+        with tqdm(total=len(frame_ns), desc=f"convert {name}", unit="frame", disable=not options.progress) as bar:
+            for k, (left_payload, right_payload) in enumerate(ordered_map(pool, encode, frames, window=4 * workers)):
+                stamp = int(frame_ns[k])
+                for series_writer in series_writers:
+                    series_writer.write_until(stamp)
+                for topic, payload in info_payloads:
+                    writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
+                writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
+                writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
+                bar.update()
+        for series_writer in series_writers:
+            series_writer.write_until(None)
