@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from convert_fixtures import chunk_messages, out_of_order_chunks
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapFileWriter
@@ -268,6 +269,18 @@ def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type
     assert rec.metadata.extra["pair_max_offset_ns"] == "2000000"
     after = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*") if p != out)
     assert after == before  # the bag is not modified
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_every_chunk_is_in_log_time_order(tmp_path, ros2):
+    """Force (1 kHz) and pose (15 Hz) share the series chunks: merged by stamp, not the pose series
+    after the force series (`mcap doctor`: NON_MONOTONIC_LOG_TIME)."""
+    spec = write_bag(tmp_path / ("b" if ros2 else "b.bag"), BagSpec(ros2=ros2, frames=40))
+    out = convert_bag(tmp_path / ("b" if ros2 else "b.bag"), tmp_path / "out.mcap", options=PNG)
+    assert out_of_order_chunks(out) == []
+    series = [m for chunk in chunk_messages(out) for m in chunk if len({c for c, _ in chunk}) == 2]
+    assert len(series) == len(spec.force_ns) + len(spec.pose_ns)  # both series in one chunk here
+    check_recording(out, spec)
 
 
 @pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])

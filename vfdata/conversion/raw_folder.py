@@ -114,7 +114,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
 
     write_recording(out, overwrite, options, record, camera_infos(calib, int(frame_ns[0])),
                     stereo_tf(calib, int(frame_ns[0])), frame_ns, _numbered(source, len(frame_ns), src / "frames.csv"),
-                    encode, series, src.name, series_batch=1)
+                    encode, series, src.name)
     return out
 
 

@@ -33,6 +33,8 @@ from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 T = TypeVar("T")
 _STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
 _U32 = struct.Struct("<I")
+SERIES_BATCH = 512  # force and pose samples encoded and written at a time
+_SHORT_RUN = 16  # runs of fewer samples of one series are written message by message
 
 
 @dataclass(frozen=True)
@@ -99,32 +101,62 @@ def encode_image(image: np.ndarray, options: ConvertOptions) -> np.ndarray | Non
 
 # -- the write loop -----------------------------------------------------------------------------------
 class _SeriesWriter:
-    """Writes a force or pose series in stamp order as the frames go by: `write_until(stamp)` makes sure
-    every sample up to `stamp` is written. At 1 kHz the per-call costs add up, so samples are encoded
-    and written `batch` at a time, whenever that many are due (the series has chunks of its own in the
-    file, `McapWriter(separate_topics=...)`, so waiting a few frames moves nothing in the file)."""
+    """Writes the force and pose series as the frames go by, merged into one stamp order: they share
+    the file's series chunks (`McapWriter(separate_topics=...)`), and each chunk must hold its
+    messages in log-time order (readers that stream a chunk, and `mcap doctor`, expect it).
+    `write_until(stamp)` makes sure every sample up to `stamp` is written. At 1 kHz the per-call
+    costs add up, so samples are encoded and written once `batch` of them are due (the series chunks
+    are apart from the images, so waiting a few frames moves nothing in the file)."""
 
-    def __init__(self, writer: McapWriter, series: StampedSeries, batch: int):
-        self.writer, self.series, self.batch, self.done = writer, series, batch, 0
+    def __init__(self, writer: McapWriter, series: list[StampedSeries], batch: int):
+        self.writer, self.series, self.batch = writer, series, batch
+        self.done = [0] * len(series)
 
     def write_until(self, stamp_ns: int | None) -> None:
         """The samples up to `stamp_ns` once `batch` of them are due; every remaining one for None."""
-        series = self.series
-        stamps = series.stamps_ns
-        stop = len(stamps) if stamp_ns is None else int(np.searchsorted(stamps, stamp_ns, side="right"))
-        if stop - self.done < (1 if stamp_ns is None else self.batch):
+        stops = [len(s.stamps_ns) if stamp_ns is None else int(np.searchsorted(s.stamps_ns, stamp_ns, side="right"))
+                 for s in self.series]
+        if sum(stops) - sum(self.done) < (1 if stamp_ns is None else self.batch):
             return
-        for start in range(self.done, stop, 8 * self.batch):  # a bounded table even for a long gap
-            rows = slice(start, min(stop, start + 8 * self.batch))
-            self.writer.write_payloads(series.topic, series.msgtype, stamps[rows],
-                                       encode_stamped_batch(stamps[rows], series.frame_id, series.values[rows]))
-        self.done = stop
+        # Merged order of the due samples: a stable sort of the series' sorted stamps, so equal
+        # stamps keep the series' order (force before pose).
+        which = np.concatenate([np.full(stop - done, i) for i, (done, stop) in enumerate(zip(self.done, stops,
+                                                                                              strict=True))])
+        stamps = np.concatenate([s.stamps_ns[done:stop] for s, done, stop in zip(self.series, self.done, stops,
+                                                                                  strict=True)])
+        which = which[np.argsort(stamps, kind="stable")]
+        for start in range(0, len(which), 8 * self.batch):  # a bounded table even for a long gap
+            self._write_merged(which[start:start + 8 * self.batch])
+
+    def _write_merged(self, which: np.ndarray) -> None:
+        """The next len(which) samples, `which[j]` naming the series of the j-th: each series' rows
+        encoded at once, then written run by run (a run: consecutive samples of one series)."""
+        counts = np.bincount(which, minlength=len(self.series))
+        tables = []
+        for i, s in enumerate(self.series):
+            rows = slice(self.done[i], self.done[i] + int(counts[i]))
+            tables.append((s.stamps_ns[rows], encode_stamped_batch(s.stamps_ns[rows], s.frame_id, s.values[rows])))
+        used = [0] * len(self.series)
+        bounds = [0, *(np.flatnonzero(np.diff(which)) + 1).tolist(), len(which)]
+        for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
+            i, n = int(which[start]), stop - start
+            stamps, table = tables[i]
+            s = self.series[i]
+            rows = slice(used[i], used[i] + n)
+            if n < _SHORT_RUN:  # one call per message costs less than a bulk call for a few
+                for stamp, row in zip(stamps[rows].tolist(), table[rows], strict=True):
+                    self.writer.write_payload(s.topic, s.msgtype, stamp, row.tobytes())
+            else:
+                self.writer.write_payloads(s.topic, s.msgtype, stamps[rows], table[rows])
+            used[i] += n
+        for i, n in enumerate(used):
+            self.done[i] += n
 
 
 def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record: layout.RecordingMeta,
                     infos: tuple[CameraInfo, CameraInfo], tf: TFMessage, frame_ns: np.ndarray,
                     frames: Iterable[T], encode: Callable[[T], tuple[bytes, bytes]],
-                    series: list[StampedSeries], name: str, series_batch: int = 512) -> None:
+                    series: list[StampedSeries], name: str) -> None:
     """Write the recording to `out` (atomically: nothing is left on any error).
 
     `frames` yields one item per stereo frame, in frame order; `encode(item)` (called on the encoding
@@ -143,16 +175,14 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
         writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
         writer.write(layout.TF_STATIC, tf)
         # Samples up to each frame's stamp are written before it, so the file is in time order.
-        series_writers = [_SeriesWriter(writer, s, series_batch) for s in series]
+        series_writer = _SeriesWriter(writer, series, SERIES_BATCH)
         with tqdm(total=len(frame_ns), desc=f"convert {name}", unit="frame", disable=not options.progress) as bar:
             for k, (left_payload, right_payload) in enumerate(ordered_map(pool, encode, frames, window=4 * workers)):
                 stamp = int(frame_ns[k])
-                for series_writer in series_writers:
-                    series_writer.write_until(stamp)
+                series_writer.write_until(stamp)
                 for topic, payload in info_payloads:
                     writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
                 writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
                 writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
                 bar.update()
-        for series_writer in series_writers:
-            series_writer.write_until(None)
+        series_writer.write_until(None)
