@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vfdata.commands.inspect_bag import add_bag_arguments, bag_arguments
+from vfdata.commands.inspect_bag import add_bag_arguments, add_force_gap_argument, bag_arguments, force_gap_option_ns
 from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
@@ -23,8 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quality", type=int, default=95, help="JPEG quality 1-100 (default 95)")
     p.add_argument("--reencode", action="store_true",
                    help="re-encode colour JPEG input frames at --quality (default: store them as they are)")
-    p.add_argument("--force-gap-ms", type=float, default=50.0,
-                   help="largest gap allowed in the force stream over the video span (default 50 ms)")
+    add_force_gap_argument(p)
     p.add_argument("--workers", type=int, default=None,
                    help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
                         f"{default_workers()} here)")
@@ -38,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
-        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), progress=not args.quiet, **threads,
+        force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet, **threads,
     )
     if is_bag(args.src):
         out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, **bag_arguments(args))

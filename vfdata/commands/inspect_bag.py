@@ -10,8 +10,8 @@ from pathlib import Path
 
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion import bag_scan, bag_topics, bags
+from vfdata.conversion.force_coverage import FORCE_GAP_PERIODS, MIN_FORCE_GAP_NS
 from vfdata.errors import InputError
-from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
 
 # How a bag without random access (`bag_index`) is read.
 STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "
@@ -49,14 +49,29 @@ def bag_arguments(args: argparse.Namespace) -> dict:
     }
 
 
+def add_force_gap_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force-gap-ms", type=float, default=None, metavar="MS",
+                   help=f"largest gap allowed in the force stream over the video span (default "
+                        f"{FORCE_GAP_PERIODS}x the stream's median sample interval, at least "
+                        f"{MIN_FORCE_GAP_NS / 1e6:.0f} ms)")
+
+
+def force_gap_option_ns(args: argparse.Namespace) -> int | None:
+    """The --force-gap-ms of `add_force_gap_argument` in ns (None: the stream's default)."""
+    if args.force_gap_ms is None:
+        return None
+    if not 0 < args.force_gap_ms < 1e9:  # also NaN and inf
+        raise InputError("--force-gap-ms", f"must be a positive number of milliseconds, not {args.force_gap_ms}")
+    return int(args.force_gap_ms * 1e6)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("inspect-bag", help="list a ROS bag's topics and which ones convert would use",
                        description="List the topics of a ROS 1 (.bag) or ROS 2 (folder, .db3, .mcap) bag with "
                                    "types, counts and rates, and say which ones `vfdata convert` would read.")
     p.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder")
     add_bag_arguments(p)
-    p.add_argument("--force-gap-ms", type=float, default=FORCE_GAP_TOLERANCE_NS / 1e6,
-                   help="largest gap allowed in the force stream over the video span (default 50 ms)")
+    add_force_gap_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -64,12 +79,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     kwargs = bag_arguments(args)
     print(inspect_bag_text(args.bag, kwargs["topics"], kwargs["calibration"], kwargs["pair_tolerance_ns"],
-                           int(args.force_gap_ms * 1e6), progress=not args.quiet))
+                           force_gap_option_ns(args), progress=not args.quiet))
     return 0
 
 
 def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = None, calibration: Path | None = None,
-                     pair_tolerance_ns: int | None = None, force_gap_ns: int = FORCE_GAP_TOLERANCE_NS,
+                     pair_tolerance_ns: int | None = None, force_gap_ns: int | None = None,
                      progress: bool = False) -> str:
     """The report printed by `vfdata inspect-bag`. A bag that cannot be converted is still listed,
     with the reason under "conversion"."""
@@ -122,7 +137,7 @@ def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
 
 
 def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
-                      force_gap_ns: int) -> list[str]:
+                      force_gap_ns: int | None) -> list[str]:
     lines = []
     for stream in (scan.left, scan.right):
         lines.append(f"  {stream.topic}: {stream.count} frames, {stream.width}x{stream.height} {stream.encoding}"

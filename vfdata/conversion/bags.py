@@ -269,7 +269,7 @@ def _convert_scanned(reader: AnyReader, src: Path, out: Path, overwrite: bool, o
     _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
 
 
-def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int) -> None:
+def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int | None) -> None:
     force_ns, frame_ns = scan.force.stamps_ns, plan.stamps_ns
     if force_ns[-1] < frame_ns[0] or force_ns[0] > frame_ns[-1]:
         raise InputError(scan.path, f"{scan.force.topic}: force stamps {_span(force_ns)} lie outside the video "

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
-from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
 from vfdata.recording.writer import CHUNK_SIZE
 
 MAX_DEFAULT_WORKERS = 8
@@ -25,7 +24,9 @@ def default_workers() -> int:
 class ConvertOptions:
     image_format: str = "jpeg"  # "jpeg" or "png"
     jpeg_quality: int = 95
-    force_gap_tolerance_ns: int = FORCE_GAP_TOLERANCE_NS
+    # Largest gap allowed in the force stream over the video span, ns; None: relative to the stream's
+    # own rate (`force_coverage.default_force_gap_ns`: 3 median sample intervals, at least 50 ms).
+    force_gap_tolerance_ns: int | None = None
     workers: int = field(default_factory=default_workers)
     progress: bool = True
     chunk_size: int = CHUNK_SIZE  # bytes of messages per MCAP chunk
