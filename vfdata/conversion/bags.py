@@ -41,6 +41,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from vfdata import __version__
+from vfdata.atomic import check_output
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion.bag_scan import (
     BagScan,
@@ -230,6 +231,8 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
     src, out = Path(src), Path(out)
     if options.image_format not in ("jpeg", "png"):
         raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    if src.exists():
+        check_output(out, overwrite, inputs=[src, *([calibration] if calibration is not None else [])])
     calib = StereoCalibration.load(calibration) if calibration is not None else None
     with open_bag(src) as reader:
         choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from vfdata import __version__
+from vfdata.atomic import check_output
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
@@ -47,6 +48,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
         raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
     if not src.is_dir():
         raise InputError(src, "recording folder not found")
+    check_output(out, overwrite, inputs=[src])
     calib = StereoCalibration.load(src / "calibration.yaml")
     frame_ns = read_frames_csv(src / "frames.csv")
     force_path = src / "force.csv"

@@ -5,6 +5,7 @@ series and the camera model come from."""
 
 from __future__ import annotations
 
+import errno
 import struct
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -16,6 +17,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from vfdata.atomic import disk_full
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.ordered_map import ordered_map
@@ -169,20 +171,26 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
     # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
     info_payloads = ((layout.LEFT_INFO, infos[0].encode()), (layout.RIGHT_INFO, infos[1].encode()))
     workers = max(1, options.workers)
-    with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
-                    separate_topics=(layout.WRENCH, layout.ECM_POSE), chunk_level=IMAGE_LEVEL) as writer, \
-            ThreadPoolExecutor(workers) as pool:
-        writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
-        writer.write(layout.TF_STATIC, tf)
-        # Samples up to each frame's stamp are written before it, so the file is in time order.
-        series_writer = _SeriesWriter(writer, series, SERIES_BATCH)
-        with tqdm(total=len(frame_ns), desc=f"convert {name}", unit="frame", disable=not options.progress) as bar:
-            for k, (left_payload, right_payload) in enumerate(ordered_map(pool, encode, frames, window=4 * workers)):
-                stamp = int(frame_ns[k])
-                series_writer.write_until(stamp)
-                for topic, payload in info_payloads:
-                    writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
-                writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
-                writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
-                bar.update()
-        series_writer.write_until(None)
+    try:
+        with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
+                        separate_topics=(layout.WRENCH, layout.ECM_POSE), chunk_level=IMAGE_LEVEL) as writer, \
+                ThreadPoolExecutor(workers) as pool:
+            writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
+            writer.write(layout.TF_STATIC, tf)
+            # Samples up to each frame's stamp are written before it, so the file is in time order.
+            series_writer = _SeriesWriter(writer, series, SERIES_BATCH)
+            encoded = ordered_map(pool, encode, frames, window=4 * workers)
+            with tqdm(total=len(frame_ns), desc=f"convert {name}", unit="frame", disable=not options.progress) as bar:
+                for k, (left_payload, right_payload) in enumerate(encoded):
+                    stamp = int(frame_ns[k])
+                    series_writer.write_until(stamp)
+                    for topic, payload in info_payloads:
+                        writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
+                    writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
+                    writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
+                    bar.update()
+            series_writer.write_until(None)
+    except OSError as exc:  # the writer's own file operations carry no name, or the temporary's
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise disk_full(out) from None
+        raise
