@@ -44,9 +44,10 @@ def atomic_output(path: str | Path, overwrite: bool = False, inputs: Iterable[st
         yield tmp
         _publish(tmp, path, overwrite)
     except OSError as exc:
-        if exc.errno in _DISK_FULL:
-            raise disk_full(path) from None
-        raise
+        named = output_os_error(path, exc)
+        if named is None:
+            raise
+        raise named from None
     finally:
         _remove(tmp)
 
@@ -167,10 +168,19 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def disk_full(path: Path) -> OutputError:
-    """The error of an output whose disk (or quota) is full."""
-    return OutputError(path, "no space left on the device (or quota exceeded); nothing was written: free some "
-                             "space or write the output elsewhere")
+def output_os_error(path: str | Path, exc: OSError) -> OutputError | None:
+    """An OSError met while writing `path` as the OutputError that names `path` (not its temporary):
+    a full disk or quota, or a failure on the temporary or on `path` itself (permissions, a read-only
+    file system); None for other errors (an input that cannot be read names itself)."""
+    path = Path(path)
+    if exc.errno in _DISK_FULL:
+        return OutputError(path, "no space left on the device (or quota exceeded); nothing was written: free some "
+                                 "space or write the output elsewhere")
+    names = {str(exc.filename or ""), str(getattr(exc, "filename2", None) or "")}
+    if any(Path(name).name.startswith(_tmp_prefix(path)) or name == str(path) for name in names if name):
+        return OutputError(path, f"cannot be written ({exc.strerror or exc}); nothing was written: check the folder's "
+                                 "permissions or write the output elsewhere")
+    return None
 
 
 def _publish(tmp: Path, path: Path, overwrite: bool) -> None:

@@ -10,6 +10,7 @@ from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_folder import convert_raw_folder
+from vfdata.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if not 1 <= args.quality <= 100:
+        raise InputError("--quality", f"JPEG quality must be 1-100, not {args.quality}")
     threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,

@@ -6,7 +6,12 @@ them `vfdata convert` would read, with the stereo pairing and force coverage it 
 from __future__ import annotations
 
 import argparse
+from array import array
 from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from tqdm import tqdm
 
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion import bag_scan, bag_topics, bags
@@ -45,8 +50,16 @@ def bag_arguments(args: argparse.Namespace) -> dict:
         "topics": bag_topics.BagTopics(args.left_topic, args.right_topic, args.left_info_topic, args.right_info_topic,
                                  args.force_topic, args.pose_topic),
         "calibration": args.calibration,
-        "pair_tolerance_ns": None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6),
+        "pair_tolerance_ns": _pair_tolerance_ns(args.pair_tolerance_ms),
     }
+
+
+def _pair_tolerance_ns(ms: float | None) -> int | None:
+    if ms is None:
+        return None
+    if not 0 <= ms < 1e9:  # also NaN and inf
+        raise InputError("--pair-tolerance-ms", f"must be a number of milliseconds, 0 or more, not {ms}")
+    return int(ms * 1e6)
 
 
 def add_force_gap_argument(p: argparse.ArgumentParser) -> None:
@@ -106,8 +119,8 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
         except InputError as exc:  # still list the topics, then say why convert would stop
             problem = exc.problem
             counts = {name: info.msgcount for name, info in reader.topics.items()}
-            receive = bag_scan.receive_times(reader, path, progress)
-    rates = bag_scan.topic_rates_hz(receive)
+            receive = receive_times(reader, path, progress)
+    rates = topic_rates_hz(receive)
     used = _used_topics(choice)
     width = max([34, *(len(t) + 2 for t in types)])
     lines.append("")
@@ -123,6 +136,26 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
     lines.append(f"  reading: {reading}")
     lines.extend(_conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns))
     return "\n".join(lines)
+
+
+def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
+    """Bag receive times (ns) of every topic, reading the whole bag."""
+    times: dict[str, array] = {}
+    with tqdm(total=reader.message_count, desc=f"read {path.name}", unit="msg", disable=not progress,
+              mininterval=0.5) as bar:
+        for connection, receive_ns, _raw in bag_scan.bag_messages(reader, path, reader.connections):
+            times.setdefault(connection.topic, array("q")).append(receive_ns)
+            bar.update()
+    return {topic: np.frombuffer(values, np.int64) for topic, values in times.items()}
+
+
+def topic_rates_hz(receive_ns: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean message rate of each topic over its receive times (0 for fewer than two messages)."""
+    rates = {}
+    for topic, times in receive_ns.items():
+        span = (int(times.max()) - int(times.min())) / 1e9 if len(times) > 1 else 0.0
+        rates[topic] = (len(times) - 1) / span if span > 0 else 0.0
+    return rates
 
 
 def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:

@@ -42,7 +42,7 @@ from rosbags.highlevel import AnyReader
 
 from vfdata import __version__
 from vfdata.atomic import check_output
-from vfdata.calibration import StereoCalibration
+from vfdata.calibration import DISTORTION_LENGTHS, StereoCalibration
 from vfdata.conversion.bag_scan import (
     BagScan,
     ImageStream,
@@ -177,6 +177,13 @@ def bag_camera_info(path: Path, topic: str, msg, frame_id: str) -> CameraInfo:
     )
     if not (np.isfinite(info.p).all() and info.p[0, 0] > 0 and info.p[1, 1] > 0):
         raise InputError(path, f"{topic}: P has no focal length (camera not calibrated); pass --calibration FILE")
+    if not (np.isfinite(info.k).all() and np.isfinite(info.d).all() and np.isfinite(info.r).all()
+            and info.k[0, 0] > 0 and info.k[1, 1] > 0):
+        raise InputError(path, f"{topic}: K has no positive focal length, or K, D or R hold NaN or inf (camera not "
+                               "calibrated?); pass --calibration FILE")
+    if len(info.d) not in DISTORTION_LENGTHS:
+        raise InputError(path, f"{topic}: D has {len(info.d)} coefficients (OpenCV's models have 4, 5, 8, 12 or 14); "
+                               "pass --calibration FILE")
     return info
 
 

@@ -20,7 +20,7 @@ from vfdata.calibration import StereoCalibration
 from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_images import StereoSource, jpeg_colour_size
-from vfdata.conversion.raw_meta import _meta_text, read_meta
+from vfdata.conversion.raw_meta import read_meta, recording_fields
 from vfdata.conversion.raw_tables import read_force_csv, read_frames_csv, read_pose_csv
 from vfdata.conversion.write_recording import (
     StampedSeries,
@@ -62,17 +62,10 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     check_force_covers(force_path, force_ns, frame_ns, options.force_gap_tolerance_ns)
 
     record = layout.RecordingMeta(
-        recording_id=str(meta.get("id", src.name)),
-        study=str(meta.get("study", "")),
-        tissue=str(meta.get("tissue", "")),
-        orientation_deg=float(meta.get("orientation_deg", 0.0) or 0.0),
-        split=str(meta.get("split", "")),
+        **recording_fields(meta, src / "meta.yaml", src.name, (calib.width, calib.height)),
         source=str(src.resolve()),
         converter="vfdata convert (raw folder)",
         converter_version=__version__,
-        gravity_up_world=tuple(float(v) for v in meta.get("gravity_up_world", (0.0, 0.0, 1.0))),
-        extra={k: _meta_text(v) for k, v in meta.items() if k not in {
-            "id", "study", "tissue", "orientation_deg", "split", "gravity_up_world"}},
     )
     series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, force_ns, wrench, force_frame)]
     if pose is not None:
@@ -89,13 +82,13 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
                 size = jpeg_colour_size(data)
                 # A reduced decode (1/8 scale) still walks every entropy-coded block, so a
                 # damaged file is caught at a fraction of the cost of a full decode.
-                if size is not None and cv2.imdecode(np.frombuffer(data, np.uint8),
-                                                     cv2.IMREAD_REDUCED_COLOR_8) is not None:
+                if size is not None and _decoded(data, cv2.IMREAD_REDUCED_COLOR_8) is not None:
                     if size != (calib.width, calib.height):
                         raise InputError(src / "calibration.yaml", f"image size {calib.width}x{calib.height} "
                                                                    f"differs from {name} ({size[0]}x{size[1]})")
                     return data
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            # Read here, so that an unreadable file says so (OSError) instead of "cannot be decoded".
+            image = _decoded(path.read_bytes(), cv2.IMREAD_COLOR)
             if image is None:
                 raise InputError(path, "image cannot be decoded")
         else:
@@ -118,6 +111,16 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
                     stereo_tf(calib, int(frame_ns[0])), frame_ns, _numbered(source, len(frame_ns), src / "frames.csv"),
                     encode, series, src.name)
     return out
+
+
+def _decoded(data: bytes, flags: int) -> np.ndarray | None:
+    """cv2.imdecode, None for anything it cannot decode (it raises on an empty buffer)."""
+    if not data:
+        return None
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error:
+        return None
 
 
 def _numbered(source: StereoSource, count: int, frames_csv: Path) -> Iterator[tuple[int, str, object, object]]:

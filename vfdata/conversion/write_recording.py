@@ -5,7 +5,6 @@ series and the camera model come from."""
 
 from __future__ import annotations
 
-import errno
 import struct
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -17,7 +16,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from vfdata.atomic import disk_full
+from vfdata.atomic import output_os_error
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.ordered_map import ordered_map
@@ -62,9 +61,10 @@ def camera_infos(calib: StereoCalibration, stamp_ns: int) -> tuple[CameraInfo, C
         (layout.LEFT_FRAME, calib.K1, calib.D1, rect.R1, rect.P1),
         (layout.RIGHT_FRAME, calib.K2, calib.D2, rect.R2, p2),
     ):
+        # ROS names two models: plumb_bob (k1 k2 p1 p2 k3) and rational_polynomial (k1 ... k6, and the
+        # thin-prism and tilt terms after them, in OpenCV's order, as image_geometry passes D to OpenCV).
         model = "plumb_bob" if len(D) <= 5 else "rational_polynomial"
-        d = np.zeros(5 if len(D) <= 5 else 8)
-        d[: len(D)] = D
+        d = np.concatenate([D, np.zeros(max(0, 5 - len(D)))])
         infos.append(CameraInfo(stamp_ns, frame, calib.height, calib.width, model, d, K, R, P))
     return infos[0], infos[1]
 
@@ -191,6 +191,7 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
                     bar.update()
             series_writer.write_until(None)
     except OSError as exc:  # the writer's own file operations carry no name, or the temporary's
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise disk_full(out) from None
-        raise
+        named = output_os_error(out, exc)
+        if named is None:
+            raise
+        raise named from None

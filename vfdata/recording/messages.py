@@ -14,6 +14,8 @@ import numpy as np
 from vfdata.recording.cdr import CdrError, CdrReader, CdrWriter
 
 NS_PER_S = 1_000_000_000  # ROS time is (sec, nanosec); vfdata's stamps are int ns
+# The last stamp a ROS 2 header holds (int32 seconds); stamps of the layout lie in 0 .. MAX_STAMP_NS.
+MAX_STAMP_NS = (2**31 - 1) * NS_PER_S + NS_PER_S - 1
 
 
 def _write_header(w: CdrWriter, stamp_ns: int, frame_id: str) -> None:
