@@ -7,6 +7,7 @@ import multiprocessing
 import os
 import shutil
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -64,6 +65,24 @@ def test_output_that_is_an_input_is_refused(raw, tmp_path, capsys):
     assert (tmp_path / "z.mcap").read_bytes() == b"derived"
     with atomic_output(tmp_path / "old.mcap") as tmp:  # the old signature still works
         tmp.write_bytes(b"x")
+
+
+def test_special_files_are_never_replaced(raw, tmp_path, capsys):
+    """`vfdata convert --overwrite RAW /dev/null` replaced /dev/null with a regular file (as root).
+    Checked here on a FIFO and a character device node of our own, never on the real one."""
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    nodes = [fifo, tmp_path / "stdout_link"]
+    nodes[1].symlink_to(fifo)
+    if os.geteuid() == 0:
+        nodes.append(tmp_path / "null")
+        os.mknod(nodes[-1], 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    for node in nodes:
+        assert main(["convert", "--quiet", "--overwrite", str(raw), str(node)]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.endswith("is not a regular file (a device, FIFO or socket): write the output to a file"), err
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and nodes[1].is_symlink()
+    assert os.geteuid() != 0 or stat.S_ISCHR(os.stat(nodes[-1]).st_mode)
 
 
 def _publish_in_child(path: str) -> None:

@@ -93,6 +93,10 @@ def check_output(path: str | Path, overwrite: bool = False, inputs: Iterable[str
     folder exists."""
     path = Path(path)
     refuse_inputs(path, inputs)
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        # A device, FIFO or socket (or a link to one: /dev/null, /dev/stdout): publishing would replace
+        # the special file itself, not write into it.
+        raise InputError(path, "is not a regular file (a device, FIFO or socket): write the output to a file")
     if path.exists() and not overwrite:
         raise OutputExistsError(path)
     if not path.parent.is_dir():
