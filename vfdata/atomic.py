@@ -3,7 +3,8 @@ end, and leave nothing behind when anything fails (or the user interrupts, or SI
 CLI turns it into an exception, so the `finally` here runs).
 
 - An output that is one of the inputs (the same path after resolving links, a hard link to it, a
-  file inside an input folder, or a folder holding an input) is refused before anything is written.
+  file inside an input folder, or a folder holding an input) is refused before anything is written;
+  so is a device, FIFO or socket (`/dev/null`: publishing would replace the special file itself).
 - Without `overwrite`, publishing never replaces a file that appeared meanwhile (another run writing
   the same output): `renameat2(RENAME_NOREPLACE)` where the kernel and file system have it, else a
   hard link (`link` fails if the name exists) and the temporary name removed. Of two runs racing for
@@ -47,7 +48,7 @@ def atomic_output(path: str | Path, overwrite: bool = False, inputs: Iterable[st
         named = output_os_error(path, exc)
         if named is None:
             raise
-        raise named from None
+        raise named from exc
     finally:
         _remove(tmp)
 

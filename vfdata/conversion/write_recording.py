@@ -194,4 +194,4 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
         named = output_os_error(out, exc)
         if named is None:
             raise
-        raise named from None
+        raise named from exc
