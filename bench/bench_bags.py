@@ -11,7 +11,7 @@ one invocation: on a machine shared with other jobs, figures move by 0.1 between
 CPU-time ratio is the steadier figure; with as many threads as cores, the wall ratio tends to it.
 
     python bench/bench_bags.py [--bags ros1 sqlite3 mcap mcap-zstd] [--frames 200] [--workers 2]
-                               [--convert-workers N] [--force-hz 1000] [--repeat 3]
+                               [--convert-workers N] [--force-hz 1000] [--pose-hz 0] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ KINDS = ("ros1", "sqlite3", "mcap", "mcap-zstd")  # ROS 1; ROS 2 storages
 DEFAULT_KINDS = ["ros1", "sqlite3", "mcap"]  # the bags read in place; zstd MCAP is streamed, 4x slower
 
 
-def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], kind: str, force_hz: float) -> None:
+def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], kind: str, force_hz: float,
+              pose_hz: float = 0.0) -> None:
     ros2 = kind != "ros1"
     ts = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
     T = ts.types
@@ -83,6 +84,8 @@ def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], kind: str
         info_c = {side: writer.add_connection(f"/jhu_daVinci/{side}/camera_info", "sensor_msgs/msg/CameraInfo",
                                               typestore=ts) for side in ("left", "right")}
         force_c = writer.add_connection("/netft_data", wrench_type, typestore=ts)
+        pose_type = "geometry_msgs/msg/PoseStamped"
+        pose_c = writer.add_connection("/ECM/measured_cp", pose_type, typestore=ts) if pose_hz else None
         vec = T["geometry_msgs/msg/Vector3"]
         names = ("d", "k", "r", "p") if ros2 else ("D", "K", "R", "P")
         for side, tx in (("left", 0.0), ("right", -500.0 * 0.005)):
@@ -93,9 +96,15 @@ def write_bag(path: Path, frames: list[tuple[np.ndarray, np.ndarray]], kind: str
                 header=header(T0_NS, side), height=HEIGHT, width=WIDTH, distortion_model="plumb_bob",
                 **dict(zip(names, values, strict=True)), binning_x=0, binning_y=0, roi=roi)
             writer.write(info_c[side], T0_NS, serialize(info, "sensor_msgs/msg/CameraInfo"))
-        force_t = T0_NS - 5_000_000
+        force_t = pose_t = T0_NS - 5_000_000 + 250_000  # pose samples between the force samples
         for i, (left, right) in enumerate(frames):
             stamp = T0_NS + i * FRAME_NS
+            while pose_c is not None and pose_t <= stamp + FRAME_NS:
+                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=0.1, y=0.2, z=0.3),
+                                                   orientation=T["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1))
+                writer.write(pose_c, pose_t + 100_000, serialize(T[pose_type](header=header(pose_t, "ECM_base"),
+                                                                              pose=pose), pose_type))
+                pose_t += int(1e9 / pose_hz)
             while force_t <= stamp + FRAME_NS:
                 msg = T[wrench_type](header=header(force_t, "ft"), wrench=T["geometry_msgs/msg/Wrench"](
                     force=vec(x=0.1, y=0.2, z=1.0), torque=vec(x=0.0, y=0.0, z=0.01)))
@@ -147,6 +156,8 @@ def main() -> None:
     parser.add_argument("--convert-workers", type=int, default=None,
                         help="encoding threads of the conversion only (default: --workers)")
     parser.add_argument("--force-hz", type=float, default=1000.0, help="WrenchStamped rate (default 1000 Hz)")
+    parser.add_argument("--pose-hz", type=float, default=0.0,
+                        help="ECM PoseStamped rate, between the force samples (default 0: no pose topic)")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each, alternating; medians are reported "
                                                               "(default 3)")
     args = parser.parse_args()
@@ -162,7 +173,7 @@ def main() -> None:
         bags, sizes = {}, {}
         for kind in kinds:
             bags[kind] = Path(tmp) / ("bench.bag" if kind == "ros1" else kind)
-            write_bag(bags[kind], frames, kind, args.force_hz)
+            write_bag(bags[kind], frames, kind, args.force_hz, args.pose_hz)
             sizes[kind] = _bytes(bags[kind])
             timed_conversion(bags[kind], out, options)  # warm-up: imports, page cache
         bare: list[tuple[float, float]] = []
@@ -173,7 +184,8 @@ def main() -> None:
                 runs[kind].append(timed_conversion(bags[kind], out, options))
     load = (load_before + os.getloadavg()[0]) / 2
     n = args.frames
-    print(f"{n} stereo frames bgr8 {WIDTH}x{HEIGHT}, force {args.force_hz:g} Hz; JPEG quality {QUALITY}; "
+    pose = f", pose {args.pose_hz:g} Hz" if args.pose_hz else ""
+    print(f"{n} stereo frames bgr8 {WIDTH}x{HEIGHT}, force {args.force_hz:g} Hz{pose}; JPEG quality {QUALITY}; "
           f"{args.workers} threads (conversion: {options.workers}); {os.cpu_count()} CPUs, load average {load:.1f}")
     for i, (bw, bc) in enumerate(bare):
         line = "; ".join(f"{kind} {runs[kind][i][0]:.2f} s (ratio {bw / runs[kind][i][0]:.2f})" for kind in kinds)

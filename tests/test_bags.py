@@ -8,194 +8,58 @@ import logging
 import shutil
 import sqlite3
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import yaml
+from bagfixtures import (
+    BASELINE_M,
+    CX,
+    CY,
+    FORCE_NS,
+    FRAME_NS,
+    FX,
+    LEFT,
+    RIGHT,
+    T0_NS,
+    BagSpec,
+    write_bag,
+)
+from convert_fixtures import chunk_messages, out_of_order_chunks
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapFileWriter
 from rawfixtures import calibration
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
+from rosbags.rosbag2 import CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from vfdata.cli import main
 from vfdata.commands.inspect_bag import inspect_bag_text
-from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, image_messages, ros_images
+from vfdata.conversion import bag_index, bag_scan, bag_topics, bags, image_messages, ros_images, write_recording
 from vfdata.conversion.bag_topics import BagTopics
-from vfdata.conversion.bags import convert_bag, stamped_payload_table
+from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recording import layout
+from vfdata.recording.cdr import CdrError
 from vfdata.recording.inspect import check_file
-from vfdata.recording.messages import CameraInfo, CompressedImage, PoseStamped, WrenchStamped
+from vfdata.recording.messages import (
+    CameraInfo,
+    CompressedImage,
+    PoseStamped,
+    WrenchStamped,
+    decode_stamped_batch,
+    encode_stamped_batch,
+)
 from vfdata.recording.reader import Recording
 from vfdata.recording.writer import McapWriter
 
-T0_NS = 1_700_000_000_123_456_789
-FRAME_NS = 33_333_333
-FORCE_NS = 1_000_000
-LEFT, RIGHT = "/jhu_daVinci/left/image_raw", "/jhu_daVinci/right/image_raw"
-LEFT_INFO, RIGHT_INFO = "/jhu_daVinci/left/camera_info", "/jhu_daVinci/right/camera_info"
-FX, CX, CY, BASELINE_M = 300.0, 31.5, 23.5, 0.0045
 PNG = ConvertOptions(image_format="png", progress=False)
-
-
-@dataclass
-class BagSpec:
-    """What to write, and (filled in by `write_bag`) what was written."""
-
-    ros2: bool = False
-    storage: StoragePlugin = StoragePlugin.SQLITE3
-    frames: int = 8
-    width: int = 64
-    height: int = 48
-    encoding: str = "bgr8"  # or "compressed" (JPEG), "compressed_png", "rgb8", "mono8", ...
-    pose_type: str | None = "PoseStamped"
-    left: str = LEFT
-    right: str = RIGHT
-    force_topics: tuple[str, ...] = ("/netft_data",)
-    camera_info: bool = True
-    right_offset_ns: int = 2_000_000  # right camera stamps lag the left ones
-    extra_right_ns: tuple[int, ...] = ()  # right frames with no left partner
-    force_shift_ns: int = 0
-    zero_stamps: bool = False  # image headers left at 0
-    with_images: bool = True
-    lz4: bool = False  # ROS 1 chunk compression
-    zstd: bool = False  # MCAP storage chunk compression (`ros2 bag record --storage-preset-profile zstd_fast`)
-    compression_mode: CompressionMode | None = None  # `ros2 bag record --compression-mode file|message` (zstd)
-    # filled in
-    images: list = field(default_factory=list)
-    frame_ns: np.ndarray | None = None
-    force_ns: np.ndarray | None = None
-    wrench: np.ndarray | None = None
-    pose_ns: np.ndarray | None = None
-    pose: np.ndarray | None = None
-
-
-def pattern(spec: BagSpec, i: int, side: int) -> np.ndarray:
-    rng = np.random.default_rng(10 * i + side)
-    image = rng.integers(0, 256, (spec.height, spec.width, 3), dtype=np.uint8)
-    return cv2.GaussianBlur(image, (5, 5), 0)
-
-
-def write_bag(path: Path, spec: BagSpec) -> BagSpec:
-    ts = get_typestore(Stores.ROS2_HUMBLE if spec.ros2 else Stores.ROS1_NOETIC)
-    T = ts.types
-    Time = T["builtin_interfaces/msg/Time"]
-
-    def header(stamp_ns: int, frame: str):
-        time = Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
-        if spec.ros2:
-            return T["std_msgs/msg/Header"](stamp=time, frame_id=frame)
-        return T["std_msgs/msg/Header"](seq=0, stamp=time, frame_id=frame)
-
-    def vec(x, y, z):
-        return T["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z))
-
-    n = spec.frames
-    spec.frame_ns = T0_NS + np.arange(n, dtype=np.int64) * FRAME_NS
-    spec.images = [(pattern(spec, i, 0), pattern(spec, i, 1)) for i in range(n)]
-    spec.force_ns = np.arange(spec.frame_ns[0] - 5 * FORCE_NS, spec.frame_ns[-1] + 5 * FORCE_NS, FORCE_NS,
-                              dtype=np.int64) + spec.force_shift_ns
-    phase = (spec.force_ns - T0_NS) / 1e9
-    spec.wrench = np.stack([np.sin(phase * 7 * k + k) * k for k in range(1, 7)], axis=1)
-    spec.pose_ns = spec.frame_ns[::2] + 1_000_000
-    angles = 0.05 * np.arange(len(spec.pose_ns))
-    spec.pose = np.stack([0.1 + 0 * angles, 0.2 + 0.001 * np.arange(len(angles)), 0.3 + 0 * angles,
-                          np.sin(angles / 2), 0 * angles, 0 * angles, np.cos(angles / 2)], axis=1)
-
-    messages = []  # (receive_ns, topic, msgtype, message)
-
-    def image_msg(image: np.ndarray, stamp: int, frame: str):
-        if spec.encoding.startswith("compressed"):
-            fmt = "png" if spec.encoding == "compressed_png" else "jpeg"
-            data = cv2.imencode("." + fmt.replace("jpeg", "jpg"), image)[1].ravel()
-            fmt = "bgr8; png compressed bgr8" if fmt == "png" else "rgb8; jpeg compressed bgr8"
-            return "sensor_msgs/msg/CompressedImage", T["sensor_msgs/msg/CompressedImage"](
-                header=header(stamp, frame), format=fmt, data=data)
-        if spec.encoding == "rgb8":
-            pixels = image[..., ::-1]
-        elif spec.encoding == "mono8":
-            pixels = image[..., 1]
-        else:
-            pixels = image
-        pixels = np.ascontiguousarray(pixels)
-        step = spec.width * (pixels.shape[2] if pixels.ndim == 3 else 1)
-        return "sensor_msgs/msg/Image", T["sensor_msgs/msg/Image"](
-            header=header(stamp, frame), height=spec.height, width=spec.width, encoding=spec.encoding,
-            is_bigendian=0, step=step, data=pixels.ravel())
-
-    for i, stamp in enumerate(spec.frame_ns if spec.with_images else []):
-        left, right = spec.images[i]
-        l_stamp, r_stamp = int(stamp), int(stamp) + spec.right_offset_ns
-        for side_topic, image, st, frame in ((spec.left, left, l_stamp, "left"), (spec.right, right, r_stamp, "right")):
-            msgtype, msg = image_msg(image, 0 if spec.zero_stamps else st, frame)
-            messages.append((st + 5_000_000, side_topic, msgtype, msg))
-    for extra in spec.extra_right_ns:
-        msgtype, msg = image_msg(spec.images[0][1], int(extra), "right")
-        messages.append((int(extra) + 5_000_000, spec.right, msgtype, msg))
-    if spec.camera_info:
-        for i in range(3):
-            stamp = int(spec.frame_ns[0]) + i * 10 * FRAME_NS
-            for side_topic, tx in ((LEFT_INFO, 0.0), (RIGHT_INFO, -FX * BASELINE_M)):
-                K = [FX, 0, CX, 0, FX, CY, 0, 0, 1]
-                P = [FX, 0, CX, tx, 0, FX, CY, 0, 0, 0, 1, 0]
-                names = ("d", "k", "r", "p") if spec.ros2 else ("D", "K", "R", "P")
-                values = (np.array([0.01, -0.02, 0.0, 0.0, 0.001]), np.array(K, float), np.eye(3).ravel(),
-                          np.array(P, float))
-                roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                            do_rectify=False)
-                msg = T["sensor_msgs/msg/CameraInfo"](
-                    header=header(stamp, "cam"), height=spec.height, width=spec.width, distortion_model="plumb_bob",
-                    **dict(zip(names, values, strict=True)), binning_x=0, binning_y=0, roi=roi)
-                messages.append((stamp + 1, side_topic, "sensor_msgs/msg/CameraInfo", msg))
-    Wrench = T["geometry_msgs/msg/Wrench"]
-    for j, topic in enumerate(spec.force_topics):
-        for stamp, w in zip(spec.force_ns, spec.wrench, strict=True):
-            msg = T["geometry_msgs/msg/WrenchStamped"](header=header(int(stamp), "ati_sensor"),
-                                                       wrench=Wrench(force=vec(*w[:3]), torque=vec(*w[3:])))
-            messages.append((int(stamp) + 200_000 + j, topic, "geometry_msgs/msg/WrenchStamped", msg))
-    if spec.pose_type:
-        for stamp, v in zip(spec.pose_ns, spec.pose, strict=True):
-            quat = T["geometry_msgs/msg/Quaternion"](x=v[3], y=v[4], z=v[5], w=v[6])
-            if spec.pose_type == "PoseStamped":
-                pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=v[0], y=v[1], z=v[2]),
-                                                   orientation=quat)
-                msg = T["geometry_msgs/msg/PoseStamped"](header=header(int(stamp), "ECM_base"), pose=pose)
-            else:
-                transform = T["geometry_msgs/msg/Transform"](translation=vec(*v[:3]), rotation=quat)
-                msg = T["geometry_msgs/msg/TransformStamped"](header=header(int(stamp), "ECM_base"),
-                                                              child_frame_id="ECM", transform=transform)
-            messages.append((int(stamp) + 300_000, "/ECM/measured_cp", f"geometry_msgs/msg/{spec.pose_type}", msg))
-
-    messages.sort(key=lambda m: m[0])
-    if spec.ros2:
-        writer = Writer2(path, version=9, storage_plugin=spec.storage)
-        if spec.zstd:
-            writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        if spec.compression_mode is not None:
-            writer.set_compression(spec.compression_mode, CompressionFormat.ZSTD)
-        serialize = ts.serialize_cdr
-    else:
-        writer = Writer1(path)
-        if spec.lz4:
-            writer.set_compression(Writer1.CompressionFormat.LZ4)
-        serialize = ts.serialize_ros1
-    with writer:
-        connections = {}
-        for _, topic, msgtype, _msg in messages:
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=ts)
-        for receive_ns, topic, msgtype, msg in messages:
-            writer.write(connections[topic], receive_ns, serialize(msg, msgtype))
-    return spec
 
 
 def check_recording(out: Path, spec: BagSpec) -> Recording:
@@ -260,6 +124,18 @@ def test_raw_bgr8_bag_converts_value_by_value(tmp_path, ros2, storage, pose_type
     assert rec.metadata.extra["pair_max_offset_ns"] == "2000000"
     after = sorted((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in tmp_path.rglob("*") if p != out)
     assert after == before  # the bag is not modified
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_every_chunk_is_in_log_time_order(tmp_path, ros2):
+    """Force (1 kHz) and pose (15 Hz) share the series chunks: merged by stamp, not the pose series
+    after the force series (`mcap doctor`: NON_MONOTONIC_LOG_TIME)."""
+    spec = write_bag(tmp_path / ("b" if ros2 else "b.bag"), BagSpec(ros2=ros2, frames=40))
+    out = convert_bag(tmp_path / ("b" if ros2 else "b.bag"), tmp_path / "out.mcap", options=PNG)
+    assert out_of_order_chunks(out) == []
+    series = [m for chunk in chunk_messages(out) for m in chunk if len({c for c, _ in chunk}) == 2]
+    assert len(series) == len(spec.force_ns) + len(spec.pose_ns)  # both series in one chunk here
+    check_recording(out, spec)
 
 
 @pytest.mark.parametrize("storage", [StoragePlugin.SQLITE3, StoragePlugin.MCAP], ids=["sqlite3", "mcap"])
@@ -331,17 +207,21 @@ def test_raw_image_decoding():
         ros_images.compressed_format("16UC1; compressedDepth png")
 
 
-def test_stamped_payloads_match_message_encoding():
+def test_stamped_batch_codec_matches_message_encoding():
+    """The numpy batch codec, both ways, against the one-message CDR encoder (the converters write with
+    it, the reader and the bag scan read with it)."""
     rng = np.random.default_rng(1)
     stamps = np.array([1_700_000_000_123_456_789, 5, 3 * 10**9 + 7])
     for frame_id in ("", "a", "ati_sensor", "abcdefg", "world"):
-        wrench, pose = rng.normal(size=(3, 6)), rng.normal(size=(3, 7))
-        assert bags.stamped_payloads(stamps, frame_id, wrench) == [
-            WrenchStamped(int(t), frame_id, tuple(w[:3]), tuple(w[3:])).encode() for t, w in zip(stamps, wrench,
-                                                                                                   strict=True)]
-        assert bags.stamped_payloads(stamps, frame_id, pose) == [
-            PoseStamped(int(t), frame_id, tuple(p[:3]), tuple(p[3:])).encode() for t, p in zip(stamps, pose,
-                                                                                                 strict=True)]
+        for cls, width in ((WrenchStamped, 6), (PoseStamped, 7)):
+            values = rng.normal(size=(3, width))
+            table = encode_stamped_batch(stamps, frame_id, values)
+            assert [row.tobytes() for row in table] == [
+                cls(int(t), frame_id, tuple(v[:3]), tuple(v[3:])).encode() for t, v in zip(stamps, values, strict=True)]
+            got_stamps, got_values = decode_stamped_batch(table, width)
+            assert got_stamps.tolist() == stamps.tolist() and np.array_equal(got_values, values)
+    with pytest.raises(CdrError, match="frame_id length"):
+        decode_stamped_batch(encode_stamped_batch(stamps, "ati", rng.normal(size=(3, 7))), 6)
 
 
 def test_pair_stamps_mutual_nearest_within_tolerance():
@@ -888,11 +768,11 @@ def test_payload_helpers_match_message_encoding():
                       np.hstack([np.eye(3), np.ones((3, 1))]), 0, 0, (0, 0, 0, 0, False))
     stamp = 1_700_000_000_987_654_321
     expect = CameraInfo(**{**info.__dict__, "stamp_ns": stamp}).encode()
-    assert bags.restamped(info.encode(), stamp) == expect
+    assert write_recording.restamped(info.encode(), stamp) == expect
     for frame in ("", "a", "stereo_left_optical"):
         for fmt in ("jpeg", "png"):
             data = np.arange(11, dtype=np.uint8).reshape(-1, 1)  # cv2.imencode's shape
-            assert bags.compressed_image_payload(stamp, frame, fmt, data) == CompressedImage(
+            assert write_recording.compressed_image_payload(stamp, frame, fmt, data) == CompressedImage(
                 stamp, frame, fmt, data.tobytes()).encode()
 
 
@@ -901,7 +781,7 @@ def test_write_payloads_equals_one_write_per_message(tmp_path):
     `write_payload` per message, chunk boundaries included."""
     rng = np.random.default_rng(0)
     stamps = np.sort(rng.integers(10**18, 2 * 10**18, 700))
-    table = stamped_payload_table(stamps, "ati", rng.normal(size=(700, 6)))
+    table = encode_stamped_batch(stamps, "ati", rng.normal(size=(700, 6)))
     for kwargs in ({"separate_topics": ("/f",), "separate_batch": 64}, {"chunk_size": 5000}):
         for name, bulk in (("one.mcap", False), ("bulk.mcap", True)):
             with McapWriter(tmp_path / name, overwrite=True, **kwargs) as writer:

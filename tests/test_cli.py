@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
-from vfdata.cli import COMMANDS, build_parser
+from vfdata.cli import COMMANDS, build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_command_registers():
@@ -35,3 +39,45 @@ def test_process_help_names_every_registered_tracker():
     from vfdata.tracking.registry import TRACKERS
 
     assert all(name in TRACKER_HELP for name in TRACKERS)
+
+
+def _vfdata(*args: str) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "vfdata", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+
+
+def test_closed_stdout_ends_quietly(tmp_path):
+    """`vfdata info X | head`: the reader has gone before we write; no 'error: Broken pipe'."""
+    from rawfixtures import make_raw
+
+    from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+
+    out = convert_raw_folder(make_raw(tmp_path / "rec", n=3), tmp_path / "rec.mcap",
+                             options=ConvertOptions(progress=False))
+    run = _vfdata("info", str(out))
+    run.stdout.close()
+    assert run.wait(timeout=60) == 141
+    assert run.stderr.read() == ""
+
+
+def test_debug_shows_the_traceback_and_errors_are_one_line(tmp_path):
+    plain = _vfdata("convert", "--quiet", str(tmp_path / "missing"), str(tmp_path / "out.mcap"))
+    debug = _vfdata("--debug", "convert", "--quiet", str(tmp_path / "missing"), str(tmp_path / "out.mcap"))
+    assert plain.wait(timeout=60) == 1 and debug.wait(timeout=60) == 1
+    assert plain.stderr.read().strip() == f"vfdata convert: error: {tmp_path / 'missing'}: recording folder not found"
+    trace = debug.stderr.read()
+    assert "Traceback" in trace and "InputError" in trace
+
+
+def test_an_unexpected_exception_is_one_line_too(monkeypatch, capsys):
+    from vfdata.commands import info
+
+    def broken(args):
+        raise ZeroDivisionError("division by zero\nsecond line")
+
+    monkeypatch.setattr(info, "run", broken)
+    assert main(["info", "x.mcap"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == ("vfdata info: internal error: ZeroDivisionError: division by zero (a bug in vfdata: run "
+                   "`vfdata --debug info ...` for the traceback and report it)")

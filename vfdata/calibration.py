@@ -7,6 +7,7 @@ the reference frame of every derived quantity (depth, clouds, tracks) in camera 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -17,6 +18,54 @@ import numpy as np
 from vfdata.errors import InputError
 
 _RECTIFIED_ATOL = 1e-9
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what OpenCV takes: none, plumb bob, rational, thin prism, tilted
+
+
+def _node(fs: cv2.FileStorage, path: Path, name: str, required: bool = True):
+    node = fs.getNode(name)
+    if node.empty() and required:
+        raise InputError(path, f"missing '{name}'")
+    return node
+
+
+def _integer(fs: cv2.FileStorage, path: Path, name: str) -> int:
+    node = _node(fs, path, name)
+    value = node.real() if node.isInt() or node.isReal() else None
+    if value is None or not np.isfinite(value) or value != int(value):
+        raise InputError(path, f"'{name}' must be a whole number")
+    return int(value)
+
+
+def _text(fs: cv2.FileStorage, path: Path, name: str, default: str) -> str:
+    node = _node(fs, path, name, required=False)
+    if node.empty():
+        return default
+    if not node.isString():
+        raise InputError(path, f"'{name}' must be text")
+    return node.string()
+
+
+def _matrix(fs: cv2.FileStorage, path: Path, name: str, shape: tuple[int, ...] | None) -> np.ndarray:
+    node = _node(fs, path, name)
+    try:
+        m = node.mat() if node.isMap() else None
+    except (cv2.error, SystemError):
+        m = None
+    if m is None:
+        raise InputError(path, f"'{name}' is not an OpenCV matrix (!!opencv-matrix with rows, cols, dt and as many "
+                               "data values)")
+    m = np.asarray(m, dtype=np.float64)
+    if shape is not None and m.size != int(np.prod(shape)):
+        raise InputError(path, f"'{name}' has {m.size} values, expected {int(np.prod(shape))}")
+    return m.reshape(shape) if shape is not None else m.ravel()
+
+
+def _cv2_problem(exc: BaseException) -> str:
+    """OpenCV's parse error, e.g. "... in function 'calibration.yaml(7): Missing , between the
+    elements'", as " (line 7: Missing , between the elements)"; "" when it says nothing useful."""
+    text = str(exc.__cause__ or exc)
+    found = re.search(r"\((\d+)\): ([^\n']+)", text)
+    return f" (line {found[1]}: {found[2].strip()})" if found else ""
 
 
 @dataclass(frozen=True)
@@ -121,59 +170,63 @@ class StereoCalibration:
     @classmethod
     def load(cls, path: str | Path) -> StereoCalibration:
         """Read `calibration.yaml` (OpenCV FileStorage: image_width, image_height, K1, D1, K2, D2, R,
-        T, units mm|m). Raises InputError naming the file and the problem."""
+        T, units mm|m). Raises InputError naming the file and the problem: an unreadable file, a
+        missing or mistyped entry, or values no camera has (`check`)."""
         path = Path(path)
         if not path.is_file():
             raise InputError(path, "calibration file not found")
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        path.open("rb").close()  # an unreadable file is said so (OSError), not "not a FileStorage file"
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError) as exc:  # OpenCV's parse errors come wrapped in a SystemError
+            raise InputError(path, f"not a readable OpenCV FileStorage YAML file{_cv2_problem(exc)}") from None
         try:
             if not fs.isOpened():
                 raise InputError(path, "not a readable OpenCV FileStorage YAML file")
-
-            def mat(name: str, shape: tuple[int, ...] | None) -> np.ndarray:
-                node = fs.getNode(name)
-                if node.empty():
-                    raise InputError(path, f"missing '{name}'")
-                m = node.mat()
-                if m is None:
-                    raise InputError(path, f"'{name}' is not an OpenCV matrix")
-                m = np.asarray(m, dtype=np.float64)
-                if shape is not None and m.size != int(np.prod(shape)):
-                    raise InputError(path, f"'{name}' has {m.size} values, expected {int(np.prod(shape))}")
-                return m.reshape(shape) if shape is not None else m.ravel()
-
-            def scalar(name: str) -> float:
-                node = fs.getNode(name)
-                if node.empty():
-                    raise InputError(path, f"missing '{name}'")
-                return node.real()
-
-            units_node = fs.getNode("units")
-            units = units_node.string() if not units_node.empty() else "mm"
+            if not fs.root().isMap():
+                raise InputError(path, "not a mapping of names to values (image_width, K1, D1, ...)")
+            units = _text(fs, path, "units", "mm")
             if units not in ("mm", "m"):
                 raise InputError(path, f"units must be 'mm' or 'm', not '{units}'")
-            T = mat("T", (3,)) * (1000.0 if units == "m" else 1.0)
             calib = cls(
-                width=int(scalar("image_width")),
-                height=int(scalar("image_height")),
-                K1=mat("K1", (3, 3)),
-                D1=mat("D1", None),
-                K2=mat("K2", (3, 3)),
-                D2=mat("D2", None),
-                R=mat("R", (3, 3)),
-                T=T,
+                width=_integer(fs, path, "image_width"),
+                height=_integer(fs, path, "image_height"),
+                K1=_matrix(fs, path, "K1", (3, 3)),
+                D1=_matrix(fs, path, "D1", None),
+                K2=_matrix(fs, path, "K2", (3, 3)),
+                D2=_matrix(fs, path, "D2", None),
+                R=_matrix(fs, path, "R", (3, 3)),
+                T=_matrix(fs, path, "T", (3,)) * (1000.0 if units == "m" else 1.0),
             )
         finally:
             fs.release()
-        if calib.width <= 0 or calib.height <= 0:
+        calib.check(path)
+        return calib
+
+    def check(self, path: str | Path) -> None:
+        """InputError (naming `path`) unless this is a calibration a camera can have: positive image
+        size; camera matrices [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0; 0, 4, 5, 8, 12
+        or 14 distortion coefficients (OpenCV's models); R a rotation; T not zero; all finite."""
+        if self.width <= 0 or self.height <= 0:
             raise InputError(path, "image_width and image_height must be positive")
-        values = np.concatenate([calib.K1.ravel(), calib.K2.ravel(), calib.R.ravel(), calib.T, calib.D1,
-                                 calib.D2])
+        values = np.concatenate([self.K1.ravel(), self.K2.ravel(), self.R.ravel(), self.T, self.D1, self.D2])
         if not np.isfinite(values).all():
             raise InputError(path, "calibration holds NaN or inf")
-        if np.linalg.norm(calib.T) <= 0:
+        for name, K in (("K1", self.K1), ("K2", self.K2)):
+            if not (K[0, 0] > 0 and K[1, 1] > 0):
+                raise InputError(path, f"{name}: focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g} must be positive "
+                                       "(a camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]])")
+            if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+                raise InputError(path, f"{name} is not a camera matrix: its last two rows must be [0, fy, cy], "
+                                       "[0, 0, 1]")
+        for name, D in (("D1", self.D1), ("D2", self.D2)):
+            if len(D) not in DISTORTION_LENGTHS:
+                raise InputError(path, f"{name} has {len(D)} coefficients; OpenCV's distortion models have "
+                                       f"{', '.join(map(str, DISTORTION_LENGTHS[1:]))} (or none)")
+        if not (np.allclose(self.R.T @ self.R, np.eye(3), atol=1e-3) and np.linalg.det(self.R) > 0):
+            raise InputError(path, "R is not a rotation matrix (R^T R must be the identity, det R = 1)")
+        if np.linalg.norm(self.T) <= 0:
             raise InputError(path, "T (left-to-right translation) is zero")
-        return calib
 
     def save(self, path: str | Path, units: str = "mm") -> None:
         scale = 1e-3 if units == "m" else 1.0

@@ -30,3 +30,22 @@ class OutputExistsError(VisionForceError):
     def __init__(self, path: str | Path):
         self.path = Path(path)
         super().__init__(f"{path}: output exists (pass --overwrite to replace it)")
+
+
+class OutputError(VisionForceError):
+    """An output that cannot be written (a full disk, ...): names the path and the problem."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived (timeout, systemd, docker, SLURM, a closed terminal): raised by the
+    CLI's handler so that cleanup (`finally`, context managers) runs as for Ctrl-C. A BaseException,
+    like KeyboardInterrupt, so that no `except Exception` swallows it."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"terminated by signal {signum}")

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vfdata.commands.inspect_bag import add_bag_arguments, add_force_gap_argument, bag_arguments, force_gap_option_ns
 from vfdata.conversion.bag_scan import is_bag
-from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
-from vfdata.conversion.raw_folder import MAX_DEFAULT_WORKERS, ConvertOptions, convert_raw_folder, default_workers
+from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
+from vfdata.conversion.raw_folder import convert_raw_folder
+from vfdata.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -22,38 +24,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quality", type=int, default=95, help="JPEG quality 1-100 (default 95)")
     p.add_argument("--reencode", action="store_true",
                    help="re-encode colour JPEG input frames at --quality (default: store them as they are)")
-    p.add_argument("--force-gap-ms", type=float, default=50.0,
-                   help="largest gap allowed in the force stream over the video span (default 50 ms)")
+    add_force_gap_argument(p)
     p.add_argument("--workers", type=int, default=None,
                    help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
                         f"{default_workers()} here)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    bag = p.add_argument_group("ROS bags (defaults: dVRK topic names, else auto-detected by type)")
-    bag.add_argument("--left-topic", help="left image topic (sensor_msgs/Image or CompressedImage)")
-    bag.add_argument("--right-topic", help="right image topic")
-    bag.add_argument("--left-info-topic", help="left CameraInfo topic")
-    bag.add_argument("--right-info-topic", help="right CameraInfo topic")
-    bag.add_argument("--force-topic", help="WrenchStamped topic")
-    bag.add_argument("--pose-topic", help="ECM pose topic (PoseStamped or TransformStamped); 'none' to skip")
-    bag.add_argument("--calibration", type=Path, help="calibration.yaml to use instead of the bag's CameraInfo")
-    bag.add_argument("--pair-tolerance-ms", type=float,
-                     help="largest left/right stamp difference of a pair (default half a frame period)")
+    add_bag_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if not 1 <= args.quality <= 100:
+        raise InputError("--quality", f"JPEG quality must be 1-100, not {args.quality}")
     threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
-        force_gap_tolerance_ns=int(args.force_gap_ms * 1e6), progress=not args.quiet, **threads,
+        force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet, **threads,
     )
     if is_bag(args.src):
-        topics = BagTopics(left=args.left_topic, right=args.right_topic, left_info=args.left_info_topic,
-                           right_info=args.right_info_topic, force=args.force_topic, pose=args.pose_topic)
-        tolerance = None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6)
-        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, topics=topics,
-                          calibration=args.calibration, pair_tolerance_ns=tolerance)
+        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, **bag_arguments(args))
     else:
         out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options)
     print(f"wrote {out}")

@@ -6,12 +6,17 @@ them `vfdata convert` would read, with the stereo pairing and force coverage it 
 from __future__ import annotations
 
 import argparse
+from array import array
 from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+from tqdm import tqdm
 
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion import bag_scan, bag_topics, bags
+from vfdata.conversion.force_coverage import FORCE_GAP_PERIODS, MIN_FORCE_GAP_NS
 from vfdata.errors import InputError
-from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS
 
 # How a bag without random access (`bag_index`) is read.
 STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "
@@ -45,8 +50,32 @@ def bag_arguments(args: argparse.Namespace) -> dict:
         "topics": bag_topics.BagTopics(args.left_topic, args.right_topic, args.left_info_topic, args.right_info_topic,
                                  args.force_topic, args.pose_topic),
         "calibration": args.calibration,
-        "pair_tolerance_ns": None if args.pair_tolerance_ms is None else int(args.pair_tolerance_ms * 1e6),
+        "pair_tolerance_ns": _pair_tolerance_ns(args.pair_tolerance_ms),
     }
+
+
+def _pair_tolerance_ns(ms: float | None) -> int | None:
+    if ms is None:
+        return None
+    if not 0 <= ms < 1e9:  # also NaN and inf
+        raise InputError("--pair-tolerance-ms", f"must be a number of milliseconds, 0 or more, not {ms}")
+    return int(ms * 1e6)
+
+
+def add_force_gap_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force-gap-ms", type=float, default=None, metavar="MS",
+                   help=f"largest gap allowed in the force stream over the video span (default "
+                        f"{FORCE_GAP_PERIODS}x the stream's median sample interval, at least "
+                        f"{MIN_FORCE_GAP_NS / 1e6:.0f} ms)")
+
+
+def force_gap_option_ns(args: argparse.Namespace) -> int | None:
+    """The --force-gap-ms of `add_force_gap_argument` in ns (None: the stream's default)."""
+    if args.force_gap_ms is None:
+        return None
+    if not 0 < args.force_gap_ms < 1e9:  # also NaN and inf
+        raise InputError("--force-gap-ms", f"must be a positive number of milliseconds, not {args.force_gap_ms}")
+    return int(args.force_gap_ms * 1e6)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -55,8 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "types, counts and rates, and say which ones `vfdata convert` would read.")
     p.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder")
     add_bag_arguments(p)
-    p.add_argument("--force-gap-ms", type=float, default=FORCE_GAP_TOLERANCE_NS / 1e6,
-                   help="largest gap allowed in the force stream over the video span (default 50 ms)")
+    add_force_gap_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -64,12 +92,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     kwargs = bag_arguments(args)
     print(inspect_bag_text(args.bag, kwargs["topics"], kwargs["calibration"], kwargs["pair_tolerance_ns"],
-                           int(args.force_gap_ms * 1e6), progress=not args.quiet))
+                           force_gap_option_ns(args), progress=not args.quiet))
     return 0
 
 
 def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = None, calibration: Path | None = None,
-                     pair_tolerance_ns: int | None = None, force_gap_ns: int = FORCE_GAP_TOLERANCE_NS,
+                     pair_tolerance_ns: int | None = None, force_gap_ns: int | None = None,
                      progress: bool = False) -> str:
     """The report printed by `vfdata inspect-bag`. A bag that cannot be converted is still listed,
     with the reason under "conversion"."""
@@ -91,8 +119,8 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
         except InputError as exc:  # still list the topics, then say why convert would stop
             problem = exc.problem
             counts = {name: info.msgcount for name, info in reader.topics.items()}
-            receive = bag_scan.receive_times(reader, path, progress)
-    rates = bag_scan.topic_rates_hz(receive)
+            receive = receive_times(reader, path, progress)
+    rates = topic_rates_hz(receive)
     used = _used_topics(choice)
     width = max([34, *(len(t) + 2 for t in types)])
     lines.append("")
@@ -110,6 +138,26 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
     return "\n".join(lines)
 
 
+def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
+    """Bag receive times (ns) of every topic, reading the whole bag."""
+    times: dict[str, array] = {}
+    with tqdm(total=reader.message_count, desc=f"read {path.name}", unit="msg", disable=not progress,
+              mininterval=0.5) as bar:
+        for connection, receive_ns, _raw in bag_scan.bag_messages(reader, path, reader.connections):
+            times.setdefault(connection.topic, array("q")).append(receive_ns)
+            bar.update()
+    return {topic: np.frombuffer(values, np.int64) for topic, values in times.items()}
+
+
+def topic_rates_hz(receive_ns: dict[str, np.ndarray]) -> dict[str, float]:
+    """Mean message rate of each topic over its receive times (0 for fewer than two messages)."""
+    rates = {}
+    for topic, times in receive_ns.items():
+        span = (int(times.max()) - int(times.min())) / 1e9 if len(times) > 1 else 0.0
+        rates[topic] = (len(times) - 1) / span if span > 0 else 0.0
+    return rates
+
+
 def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
     if choice is None:
         return {}
@@ -122,7 +170,7 @@ def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
 
 
 def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
-                      force_gap_ns: int) -> list[str]:
+                      force_gap_ns: int | None) -> list[str]:
     lines = []
     for stream in (scan.left, scan.right):
         lines.append(f"  {stream.topic}: {stream.count} frames, {stream.width}x{stream.height} {stream.encoding}"

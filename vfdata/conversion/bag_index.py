@@ -1,7 +1,7 @@
 """Random access to the raw messages of a bag, for the storages where it is cheap: ROS 1 bags and
 ROS 2 bags in MCAP storage whose chunks are uncompressed (the files are memory-mapped; a message is a
 slice of them, copied by nobody), and ROS 2 sqlite3 bags (a message is a row, read as a blob, its
-first bytes alone when that is enough).
+first bytes alone when that is enough: `bag_sqlite`). The interface they share is `bag_access.IndexedBag`.
 
 `rosbags` still opens the bag, checks it and deserialises the messages; this module only replaces
 its message iterator where the conversion needs more than an iterator gives:
@@ -20,7 +20,6 @@ from __future__ import annotations
 import mmap
 import sqlite3
 import struct
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -30,6 +29,8 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
+from vfdata.conversion.bag_access import BLOCK, HEAD_BYTES, INDEX_BLOCK, IndexedBag, in_bag_order
+from vfdata.conversion.bag_sqlite import SqliteBag
 from vfdata.recording.mcaprecords import (
     INDEX_PAIR,
     MESSAGE_FIELDS,
@@ -44,37 +45,6 @@ from vfdata.recording.mcaprecords import (
 from vfdata.recording.messages import NS_PER_S
 
 _U32 = struct.Struct("<I")
-HEAD_BYTES = 256  # enough for the fields before the pixels unless frame_id or encoding are very long
-BLOCK = 4096  # messages per block of a series, and per bulk check of ROS 1 record headers
-INDEX_BLOCK = 65536  # rows of the sqlite index read at a time
-
-
-# -- the indexed bags -------------------------------------------------------------------------------
-class IndexedBag:
-    """The messages of the topics asked for, in bag order (by receive time, as `rosbags` yields them),
-    each reachable by its position in its topic."""
-
-    reading = ""  # how the messages are reached, for `vfdata inspect-bag`
-
-    def receive_ns(self, topic: str) -> np.ndarray:
-        """Bag receive times (ns) of the messages of `topic`, in bag order."""
-        raise NotImplementedError
-
-    def message(self, topic: str, i: int) -> bytes | memoryview:
-        """The serialised message i of `topic`."""
-        raise NotImplementedError
-
-    def head(self, topic: str, i: int) -> bytes | memoryview:
-        """The first bytes (at most HEAD_BYTES) of message i of `topic`."""
-        raise NotImplementedError
-
-    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
-        """Every message of `topic` in blocks of at most BLOCK: (receive times (n,) ns, payloads), the
-        payloads as an (n, L) uint8 array when they all have length L, else a list of bytes."""
-        raise NotImplementedError
-
-    def close(self) -> None:
-        raise NotImplementedError
 
 
 def open_indexed_bag(reader: AnyReader, path: Path, topics: set[str]) -> IndexedBag | None:
@@ -87,16 +57,9 @@ def open_indexed_bag(reader: AnyReader, path: Path, topics: set[str]) -> Indexed
         if storage is None:
             return None
         kind, files = storage
-        return _SqliteBag.open(files, topics) if kind == "sqlite3" else _McapBag.open(files, topics)
+        return SqliteBag.open(files, topics) if kind == "sqlite3" else _McapBag.open(files, topics)
     except (OSError, ValueError, IndexError, KeyError, struct.error, sqlite3.Error, yaml.YAMLError, McapError):
         return None
-
-
-def _as_table(payloads: list[bytes]) -> np.ndarray | list[bytes]:
-    length = len(payloads[0])
-    if any(len(p) != length for p in payloads):
-        return payloads
-    return np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
 
 
 # ROS 1 bag format 2.0 (wiki.ros.org/Bags/Format/2.0): a record is a uint32 header length, the header
@@ -207,18 +170,6 @@ def _close_all(buffers: list[mmap.mmap]) -> None:
         _close_quietly(buffer)
 
 
-def _in_bag_order(parts: dict[str, list[np.ndarray]], columns: int) -> dict[str, tuple[np.ndarray, ...]]:
-    """Per topic, its per-file tables of (receive ns, file index, position, ...) joined and sorted by
-    receive time, then file, then position (rosbags' merge order), as contiguous columns (a strided
-    column would be copied by every `searchsorted`)."""
-    refs = {}
-    for topic, found in parts.items():
-        table = np.concatenate(found) if found else np.zeros((0, columns), np.int64)
-        table = table[np.lexsort(table.T[::-1])]  # the last key sorts first
-        refs[topic] = tuple(np.ascontiguousarray(column) for column in table.T)
-    return refs
-
-
 def _field(buffer: mmap.mmap, fields: dict[bytes, tuple[int, int]], name: bytes) -> bytes | None:
     if name not in fields:
         return None
@@ -299,109 +250,6 @@ def _ros1_refs(buffer: mmap.mmap, data: np.ndarray, chunks: tuple[np.ndarray, np
     return receive, positions, lengths
 
 
-class _SqliteBag(IndexedBag):
-    """A ROS 2 bag in sqlite3 storage (one or more .db3 files, not compressed), read through our own
-    read-only connections: messages are rows of `messages(id, topic_id, timestamp, data)`.
-
-    Each thread reads through connections of its own: sqlite serialises the calls on one connection,
-    so two encoding threads copying images out of one connection took turns."""
-
-    reading = "random access: sqlite3 rows, each image copied out of its blob"
-
-    def __init__(self, files: list[Path], connections: list[sqlite3.Connection],
-                 refs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
-        self._files = files
-        self._refs = refs  # topic -> (receive ns, file index, row id), in bag order
-        self._local = threading.local()
-        self._local.db = connections
-        self._opened = list(connections)  # every thread's, to close
-        self._lock = threading.Lock()
-        self._closed = False
-
-    @classmethod
-    def open(cls, files: list[Path], topics: set[str]) -> _SqliteBag:
-        connections = []
-        try:
-            for file in files:
-                connections.append(_connect(file))
-            # One query per file for all the topics (a query per topic scanned the messages once each).
-            parts: dict[str, list[np.ndarray]] = {topic: [] for topic in topics}
-            for index, db in enumerate(connections):
-                ids = {topic_id: name for topic_id, name in db.execute("SELECT id, name FROM topics")
-                       if name in topics}
-                if not ids:
-                    continue
-                cursor = db.execute(f"SELECT timestamp, id, topic_id FROM messages WHERE topic_id IN "
-                                    f"({','.join('?' * len(ids))}) ORDER BY timestamp, id", list(ids))
-                # Into an array block by block: a list of row tuples costs ~140 bytes a message, i.e.
-                # gigabytes for an hour of 1 kHz force and pose; the array costs 24.
-                blocks = []
-                while rows := cursor.fetchmany(INDEX_BLOCK):
-                    blocks.append(np.array(rows, np.int64))
-                table = np.concatenate(blocks) if blocks else np.zeros((0, 3), np.int64)
-                for topic_id, name in ids.items():
-                    mine = table[table[:, 2] == topic_id]
-                    parts[name].append(np.column_stack([mine[:, 0], np.full(len(mine), index), mine[:, 1]]))
-            refs = _in_bag_order(parts, 3)
-        except BaseException:
-            for db in connections:
-                db.close()
-            raise
-        return cls(files, connections, refs)
-
-    def receive_ns(self, topic: str) -> np.ndarray:
-        return self._refs[topic][0]
-
-    def _connections(self) -> list[sqlite3.Connection]:
-        mine = getattr(self._local, "db", None)
-        if mine is None:
-            mine = []
-            with self._lock:
-                if self._closed:
-                    raise sqlite3.ProgrammingError("the bag is closed")
-                try:
-                    for file in self._files:
-                        mine.append(_connect(file))
-                finally:
-                    self._opened.extend(mine)  # closed with the others, also after a failed connect
-            self._local.db = mine
-        return mine
-
-    def _blob(self, topic: str, i: int):
-        _, file, row = self._refs[topic]
-        return self._connections()[int(file[i])].blobopen("messages", "data", int(row[i]), readonly=True)
-
-    def message(self, topic: str, i: int) -> bytes:
-        with self._blob(topic, i) as blob:
-            return blob.read()
-
-    def head(self, topic: str, i: int) -> bytes:
-        with self._blob(topic, i) as blob:
-            return blob.read(HEAD_BYTES)
-
-    def payload_blocks(self, topic: str) -> Iterator[tuple[np.ndarray, np.ndarray | list[bytes]]]:
-        # File by file: the files of a split bag follow one another in time.
-        for db in self._connections():
-            cursor = db.execute("SELECT messages.timestamp, messages.data FROM messages JOIN topics ON "
-                                "messages.topic_id = topics.id WHERE topics.name = ? "
-                                "ORDER BY messages.timestamp, messages.id", (topic,))
-            while rows := cursor.fetchmany(BLOCK):
-                yield np.array([r[0] for r in rows], np.int64), _as_table([r[1] for r in rows])
-
-    def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            for db in self._opened:
-                db.close()
-
-
-def _connect(file: Path) -> sqlite3.Connection:
-    db = sqlite3.connect(file.resolve().as_uri() + "?mode=ro&immutable=1", uri=True, check_same_thread=False)
-    # Pages through a memory map: an image spans hundreds of pages, one read() each otherwise.
-    db.execute("PRAGMA mmap_size = 1099511627776")
-    return db
-
-
 def ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
     """("sqlite3" or "mcap", the storage files) of a ROS 2 bag (a folder, or one .db3 or .mcap file given
     alone); None for other storages and for compressed bags (`ros2 bag record --compression-mode`)."""
@@ -446,7 +294,7 @@ class _McapBag(_MappedBag):
         except BaseException:
             _close_all(buffers)
             raise
-        return cls(buffers, _in_bag_order(parts, 4))
+        return cls(buffers, in_bag_order(parts, 4))
 
 
 def _mcap_refs(file: Path, buffer: mmap.mmap, topics: set[str]) -> dict[str, np.ndarray] | None:

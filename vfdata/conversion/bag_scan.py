@@ -32,7 +32,13 @@ from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError
 from vfdata.recording.cdr import CdrError
-from vfdata.recording.messages import NS_PER_S, CameraInfo, decode_pose_batch, decode_wrench_batch
+from vfdata.recording.messages import (
+    MAX_STAMP_NS,
+    NS_PER_S,
+    CameraInfo,
+    decode_stamped_batch,
+    stamped_batch_frame_id,
+)
 
 log = logging.getLogger(__name__)
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -223,8 +229,12 @@ def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: boo
         for stream in (left, right):
             if stream.count == 0:
                 raise InputError(path, f"{stream.topic} has no messages")
+            _check_stamps(path, stream.topic, stream.stamps_ns)
         force = series[choice.force].result()
         pose = series[choice.pose].result() if choice.pose is not None else None
+        for found in (force, pose):
+            if found is not None:
+                _check_stamps(path, found.topic, found.stamps_ns, sorted_by_time=True)
         if pose is not None:
             norms = np.linalg.norm(pose.values[:, 3:], axis=1)
             if (norms < 1e-6).any():
@@ -237,6 +247,17 @@ def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: boo
         raise
     return BagScan(path, bag_kind(path), choice, counts, receive, left, right, force, pose,
                    first_infos.get(choice.left_info), first_infos.get(choice.right_info), indexed)
+
+
+def _check_stamps(path: Path, topic: str, stamps_ns: np.ndarray, sorted_by_time: bool = False) -> None:
+    """Acquisition stamps must lie in ROS 2 time (0 .. 2**31 s): a negative header.stamp (ROS 2's sec
+    is signed) or one past 2038 (ROS 1's is unsigned) cannot be written."""
+    bad = (stamps_ns < 0) | (stamps_ns > MAX_STAMP_NS)
+    if bad.any():
+        k = int(np.argmax(bad))
+        what = "negative" if stamps_ns[k] < 0 else "beyond ROS 2 time (2**31 s after 1970)"
+        where = "a message" if sorted_by_time else f"message {k}"
+        raise InputError(path, f"{topic}: {where} has header.stamp {stamps_ns[k]} ns, {what}")
 
 
 def close_scan(scan: BagScan) -> None:
@@ -451,55 +472,17 @@ def _decode_fixed_batch(payloads: np.ndarray | list[bytes], n_doubles: int, ros2
     `n_doubles` float64, all of one length (an (N, L) uint8 array, or a list of bytes), and their one
     frame_id; None when they do not fit that layout."""
     if isinstance(payloads, list):
-        length = len(payloads[0])
-        if any(len(raw) != length for raw in payloads):
+        if not payloads or any(len(raw) != len(payloads[0]) for raw in payloads):
             return None
-        table = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), length)
-    else:
-        table = payloads
-    count, length = table.shape
-    # One frame_id for the whole block (its length and bytes after the stamp), as the caller assumes.
-    name_length = int(table[0, 12:16].copy().view("<u4")[0]) if length >= 16 else 0
-    name = slice(12, 16 + name_length)
-    if length < 16 or 16 + name_length > length or (table[:, name] != table[0, name]).any():
+        payloads = np.frombuffer(b"".join(payloads), np.uint8).reshape(len(payloads), -1)
+    frame_id = stamped_batch_frame_id(payloads)
+    if frame_id is None:
         return None
-    try:  # CDR strings end with a NUL that ROS 1 strings do not have
-        frame_id = table[0, 16:16 + name_length].tobytes().rstrip(b"\0").decode("utf-8")
-    except UnicodeDecodeError:
+    try:
+        stamps, values = decode_stamped_batch(payloads, n_doubles, ros1=not ros2)
+    except CdrError:
         return None
-    if ros2:
-        try:
-            stamps, values = (decode_wrench_batch if n_doubles == 6 else decode_pose_batch)(table)
-        except CdrError:
-            return None
-        return stamps, values, frame_id
-    # ROS 1: uint32 seq, uint32 sec, uint32 nsec, uint32 length + frame_id, float64s (no alignment).
-    if 16 + name_length + 8 * n_doubles != length:
-        return None
-    sec = table[:, 4:8].copy().view("<u4").ravel().astype(np.int64)
-    nanosec = table[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
-    values = table[:, 16 + name_length:].copy().view("<f8").reshape(count, n_doubles)
-    return sec * NS_PER_S + nanosec, values, frame_id
-
-
-def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
-    """Bag receive times (ns) of every topic, reading the whole bag."""
-    times: dict[str, array] = {}
-    with tqdm(total=reader.message_count, desc=f"read {path.name}", unit="msg", disable=not progress,
-              mininterval=0.5) as bar:
-        for connection, receive_ns, _raw in bag_messages(reader, path, reader.connections):
-            times.setdefault(connection.topic, array("q")).append(receive_ns)
-            bar.update()
-    return {topic: np.frombuffer(values, np.int64) for topic, values in times.items()}
-
-
-def topic_rates_hz(receive_ns: dict[str, np.ndarray]) -> dict[str, float]:
-    """Mean message rate of each topic over its receive times (0 for fewer than two messages)."""
-    rates = {}
-    for topic, times in receive_ns.items():
-        span = (int(times.max()) - int(times.min())) / 1e9 if len(times) > 1 else 0.0
-        rates[topic] = (len(times) - 1) / span if span > 0 else 0.0
-    return rates
+    return stamps, values, frame_id
 
 
 def _first_line(exc: BaseException) -> str:

@@ -32,24 +32,20 @@ image once, directly. Elsewhere (bz2/lz4 chunks, MCAP storage) both steps stream
 from __future__ import annotations
 
 import logging
-import struct
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
-import cv2
 import numpy as np
 from rosbags.highlevel import AnyReader
-from tqdm import tqdm
 
 from vfdata import __version__
-from vfdata.calibration import StereoCalibration
+from vfdata.atomic import check_output
+from vfdata.calibration import DISTORTION_LENGTHS, StereoCalibration
 from vfdata.conversion.bag_scan import (
     BagScan,
     ImageStream,
-    Series,
     bag_messages,
     close_scan,
     deserialize,
@@ -66,27 +62,29 @@ from vfdata.conversion.bag_topics import (
     choose_topics,
     topic_types,
 )
+from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.image_messages import image_message
-from vfdata.conversion.ordered_map import ordered_map
-from vfdata.conversion.raw_folder import ConvertOptions, camera_infos, check_force_covers, stereo_tf
+from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
+from vfdata.conversion.write_recording import (
+    StampedSeries,
+    camera_infos,
+    compressed_image_payload,
+    encode_image,
+    stereo_tf,
+    write_recording,
+)
 from vfdata.errors import InputError
 from vfdata.recording import layout
 from vfdata.recording.messages import (
-    NS_PER_S,
     CameraInfo,
-    CompressedImage,
     PoseStamped,
     TFMessage,
     TransformStamped,
     WrenchStamped,
 )
-from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 
 log = logging.getLogger(__name__)
-
-_STAMP = struct.Struct("<iI")  # header.stamp in CDR: int32 sec, uint32 nanosec
-_U32 = struct.Struct("<I")
 
 
 # -- pairing --------------------------------------------------------------------------------------
@@ -179,6 +177,13 @@ def bag_camera_info(path: Path, topic: str, msg, frame_id: str) -> CameraInfo:
     )
     if not (np.isfinite(info.p).all() and info.p[0, 0] > 0 and info.p[1, 1] > 0):
         raise InputError(path, f"{topic}: P has no focal length (camera not calibrated); pass --calibration FILE")
+    if not (np.isfinite(info.k).all() and np.isfinite(info.d).all() and np.isfinite(info.r).all()
+            and info.k[0, 0] > 0 and info.k[1, 1] > 0):
+        raise InputError(path, f"{topic}: K has no positive focal length, or K, D or R hold NaN or inf (camera not "
+                               "calibrated?); pass --calibration FILE")
+    if len(info.d) not in DISTORTION_LENGTHS:
+        raise InputError(path, f"{topic}: D has {len(info.d)} coefficients (OpenCV's models have 4, 5, 8, 12 or 14); "
+                               "pass --calibration FILE")
     return info
 
 
@@ -233,6 +238,8 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
     src, out = Path(src), Path(out)
     if options.image_format not in ("jpeg", "png"):
         raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    if src.exists():
+        check_output(out, overwrite, inputs=[src, *([calibration] if calibration is not None else [])])
     calib = StereoCalibration.load(calibration) if calibration is not None else None
     with open_bag(src) as reader:
         choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)
@@ -272,7 +279,7 @@ def _convert_scanned(reader: AnyReader, src: Path, out: Path, overwrite: bool, o
     _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
 
 
-def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int) -> None:
+def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int | None) -> None:
     force_ns, frame_ns = scan.force.stamps_ns, plan.stamps_ns
     if force_ns[-1] < frame_ns[0] or force_ns[0] > frame_ns[-1]:
         raise InputError(scan.path, f"{scan.force.topic}: force stamps {_span(force_ns)} lie outside the video "
@@ -344,26 +351,8 @@ def _same(value):
     return value
 
 
-def restamped(payload: bytes, stamp_ns: int) -> bytes:
-    """A CDR payload of a message that starts with a std_msgs/Header, with header.stamp set to
-    `stamp_ns` (sec and nanosec are bytes 4..12, after the encapsulation header)."""
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    return payload[:4] + _STAMP.pack(sec, nanosec) + payload[12:]
-
-
-def compressed_image_payload(stamp_ns: int, frame_id: str, fmt: str, data: bytes | np.ndarray) -> bytes:
-    """`CompressedImage(stamp_ns, frame_id, fmt, data).encode()`, with one copy of `data` instead of three."""
-    head = CompressedImage(stamp_ns, frame_id, fmt, b"").encode()[:-4]  # ends with the data length, 0
-    return b"".join((head, _U32.pack(len(data)), memoryview(data).cast("B")))
-
-
 def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrite: bool, options: ConvertOptions,
            record: layout.RecordingMeta, info_l: CameraInfo, info_r: CameraInfo, tf: TFMessage) -> None:
-    encode_params = (
-        [cv2.IMWRITE_JPEG_QUALITY, options.jpeg_quality] if options.image_format == "jpeg"
-        else [cv2.IMWRITE_PNG_COMPRESSION, 1]
-    )
-    extension = ".jpg" if options.image_format == "jpeg" else ".png"
     size = (scan.left.height, scan.left.width)
     connection_of = {c.topic: c for c in reader.connections}
 
@@ -388,94 +377,19 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         if image.shape[:2] != size:
             raise InputError(scan.path, f"{stream.topic}: frame {k} is {image.shape[1]}x{image.shape[0]}, the "
                                         f"first one {size[1]}x{size[0]}")
-        if passthrough:
-            data = msg.data
-        else:
-            ok, data = cv2.imencode(extension, image, encode_params)
-            if not ok:
-                raise InputError(scan.path, f"{stream.topic}: frame {k}: image cannot be encoded")
+        data = msg.data if passthrough else encode_image(image, options)
+        if data is None:
+            raise InputError(scan.path, f"{stream.topic}: frame {k}: image cannot be encoded")
         return compressed_image_payload(int(plan.stamps_ns[k]), frame, options.image_format, data)
 
     def encode(item) -> tuple[bytes, bytes]:
         k, left, right = item
         return (encode_one(scan.left, k, left, layout.LEFT_FRAME), encode_one(scan.right, k, right, layout.RIGHT_FRAME))
 
-    first = int(plan.stamps_ns[0])
-    for transform in tf.transforms:
-        transform.stamp_ns = first
-    # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
-    info_payloads = ((layout.LEFT_INFO, info_l.encode()), (layout.RIGHT_INFO, info_r.encode()))
-    with McapWriter(out, overwrite=overwrite, separate_topics=(layout.WRENCH, layout.ECM_POSE),
-                     chunk_level=IMAGE_LEVEL) as writer, \
-            ThreadPoolExecutor(max(1, options.workers)) as pool:
-        writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
-        writer.write(layout.TF_STATIC, tf)
-        # Samples up to each frame's stamp are written before it, so the file is in time order.
-        series_writers = [_SeriesWriter(writer, layout.WRENCH, WrenchStamped.msgtype, scan.force,
-                                        scan.force.frame_id or layout.SENSOR_FRAME)]
-        if scan.pose is not None:
-            series_writers.append(_SeriesWriter(writer, layout.ECM_POSE, PoseStamped.msgtype, scan.pose,
-                                                layout.WORLD_FRAME))
-        frames = ordered_map(pool, encode, _stereo_messages(reader, scan, plan), window=4 * max(1, options.workers))
-        with tqdm(total=len(plan.stamps_ns), desc=f"convert {scan.path.name}", unit="frame",
-                  disable=not options.progress) as bar:
-            for k, (left_payload, right_payload) in enumerate(frames):
-                stamp = int(plan.stamps_ns[k])
-                for series_writer in series_writers:
-                    series_writer.write_until(stamp)
-                for topic, payload in info_payloads:
-                    writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
-                writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
-                writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
-                bar.update()
-        for series_writer in series_writers:
-            series_writer.write_until(None)
-
-
-def stamped_payload_table(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> np.ndarray:
-    """CDR payloads of N stamped messages whose body is a header and then float64 values only
-    (WrenchStamped: 6, PoseStamped: 7), as an (N, L) uint8 array built at once with numpy: row i is
-    byte for byte what `WrenchStamped.encode()` / `PoseStamped.encode()` give for message i."""
-    stamps_ns = np.asarray(stamps_ns, np.int64)
-    values = np.ascontiguousarray(values, "<f8")
-    name = frame_id.encode("utf-8") + b"\x00"
-    head = 4 + 12 + len(name)  # encapsulation, sec, nanosec, string length, string
-    body = head + (-(head - 4)) % 8  # float64s align to 8 counted after the encapsulation
-    table = np.zeros((len(stamps_ns), body + 8 * values.shape[1]), np.uint8)
-    table[:, 1] = 1  # 00 01 00 00: little-endian CDR
-    sec, nanosec = np.divmod(stamps_ns, NS_PER_S)
-    table[:, 4:8] = sec.astype("<i4")[:, None].view(np.uint8)
-    table[:, 8:12] = nanosec.astype("<u4")[:, None].view(np.uint8)
-    table[:, 12:16] = np.frombuffer(np.uint32(len(name)).astype("<u4").tobytes(), np.uint8)
-    table[:, 16:head] = np.frombuffer(name, np.uint8)
-    table[:, body:] = values.view(np.uint8)
-    return table
-
-
-def stamped_payloads(stamps_ns: np.ndarray, frame_id: str, values: np.ndarray) -> list[bytes]:
-    """`stamped_payload_table` as one bytes object per message."""
-    return [row.tobytes() for row in stamped_payload_table(stamps_ns, frame_id, values)]
-
-
-class _SeriesWriter:
-    """Writes a force or pose series in stamp order as the frames go by: `write_until(stamp)` makes sure
-    every sample up to `stamp` is written. At 1 kHz the per-call costs add up, so samples are encoded
-    and written `batch` at a time, whenever that many are due (the series has chunks of its own in the
-    file, `McapWriter(separate_topics=...)`, so waiting a few frames moves nothing in the file)."""
-
-    def __init__(self, writer: McapWriter, topic: str, msgtype: str, series: Series, frame_id: str,
-                 batch: int = 512):
-        self.writer, self.topic, self.msgtype, self.series, self.frame_id = writer, topic, msgtype, series, frame_id
-        self.batch, self.done = batch, 0
-
-    def write_until(self, stamp_ns: int | None) -> None:
-        """The samples up to `stamp_ns` once `batch` of them are due; every remaining one for None."""
-        stamps = self.series.stamps_ns
-        stop = len(stamps) if stamp_ns is None else int(np.searchsorted(stamps, stamp_ns, side="right"))
-        if stop - self.done < (1 if stamp_ns is None else self.batch):
-            return
-        for start in range(self.done, stop, 8 * self.batch):  # a bounded table even for a long gap
-            rows = slice(start, min(stop, start + 8 * self.batch))
-            self.writer.write_payloads(self.topic, self.msgtype, stamps[rows],
-                                       stamped_payload_table(stamps[rows], self.frame_id, self.series.values[rows]))
-        self.done = stop
+    series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, scan.force.stamps_ns, scan.force.values,
+                            scan.force.frame_id or layout.SENSOR_FRAME)]
+    if scan.pose is not None:
+        series.append(StampedSeries(layout.ECM_POSE, PoseStamped.msgtype, scan.pose.stamps_ns, scan.pose.values,
+                                    layout.WORLD_FRAME))
+    write_recording(out, overwrite, options, record, (info_l, info_r), tf, plan.stamps_ns,
+                    _stereo_messages(reader, scan, plan), encode, series, scan.path.name)
