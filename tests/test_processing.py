@@ -132,3 +132,10 @@ def test_errors_are_one_line(recording, tmp_path, capsys, argv, message):
 def test_source_without_images_is_refused(processed, tmp_path, capsys):
     assert main(["process", "--quiet", str(processed), str(tmp_path / "x.mcap")]) == 1
     assert "not a stereo recording" in capsys.readouterr().err
+
+
+def test_the_source_cannot_be_the_output(recording, tmp_path, capsys):
+    before = recording.read_bytes()
+    assert main(["process", "--quiet", "--overwrite", "--max-frames", "2", str(recording), str(recording)]) == 1
+    assert "input" in capsys.readouterr().err
+    assert recording.read_bytes() == before

@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from vfdata import __version__
-from vfdata.atomic import atomic_output
+from vfdata.atomic import atomic_output, check_output
 from vfdata.engine import EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt
@@ -131,11 +131,13 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
     out = Path(out) if out is not None else default_output(src)
     if options.tracker not in TRACKERS:
         raise VisionForceError(f"unknown tracker '{options.tracker}' (known: {', '.join(TRACKERS)})")
+    check_output(out, overwrite, inputs=[src])  # before the work: the source is never replaced
+    check_output(preview_path(out), True, inputs=[src])
     rec = Recording.open(src)
     engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth))
     n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
     preview = None
-    with DerivedWriter(out, overwrite=overwrite) as writer:
+    with DerivedWriter(out, overwrite=overwrite, inputs=(src,)) as writer:
         bar = tqdm(total=n_frames, desc=f"process {src.name}", unit="frame", disable=not options.progress)
         for result in engine.run(stereo_pairs(rec, n_frames)):
             t = engine.clock.now()
@@ -156,7 +158,7 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
                 writer.tracks(int(rec.frame_times_ns[i]), engine.frame.to_object(points), visible)
         writer.close(_metadata(rec, src, options, engine, n_frames))
     # Written once the MCAP is complete; it describes that MCAP, so it replaces an older picture.
-    with atomic_output(preview_path(out), overwrite=True) as tmp:
+    with atomic_output(preview_path(out), overwrite=True, inputs=[src]) as tmp:
         ok, data = cv2.imencode(".png", preview)
         if not ok:
             raise VisionForceError(f"{preview_path(out)}: the first-frame preview could not be encoded as PNG")

@@ -138,9 +138,9 @@ class DerivedWriter:
     """Writes a derived MCAP frame by frame (atomically, as `McapWriter`); `close(metadata)` adds the
     metadata record, with `derived_version`, and publishes the file."""
 
-    def __init__(self, path: str | Path, overwrite: bool = False):
+    def __init__(self, path: str | Path, overwrite: bool = False, inputs: tuple[str | Path, ...] = ()):
         self.path = Path(path)
-        self._writer = McapWriter(self.path, overwrite=overwrite)
+        self._writer = McapWriter(self.path, overwrite=overwrite, inputs=inputs)
         self.frames = 0
 
     def object_frame(self, frame: ObjectFrame, stamp_ns: int) -> None:

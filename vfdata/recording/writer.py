@@ -133,13 +133,14 @@ class McapWriter:
 
     def __init__(self, path: str | Path, overwrite: bool = False, chunk_size: int = CHUNK_SIZE,
                  separate_topics: tuple[str, ...] = (), separate_batch: int = 2048,
-                 chunk_level: int | None = FAST_LEVEL, series_level: int | None = SERIES_LEVEL):
+                 chunk_level: int | None = FAST_LEVEL, series_level: int | None = SERIES_LEVEL,
+                 inputs: tuple[str | Path, ...] = ()):
         """`separate_topics`: small high-rate topics (force, pose) whose messages are gathered into
         chunks of their own, one topic a chunk, `separate_batch` messages at a time. `chunk_level` /
         `series_level`: zstd levels of the mixed chunks and of the separated series' chunks (None:
         uncompressed)."""
         self.path = Path(path)
-        self._atomic = atomic_output(self.path, overwrite)
+        self._atomic = atomic_output(self.path, overwrite, inputs)  # `inputs`: files it is made from
         self._tmp = self._atomic.__enter__()
         self._stream = open(self._tmp, "wb")  # noqa: SIM115 - closed in close()/abort()
         self._offset = 0
