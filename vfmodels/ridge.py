@@ -5,7 +5,9 @@ Per frame, the valid point tokens (standardised per channel) are pooled into the
 moments: the mean of each channel and the mean of every pairwise product (what a set model with a
 quadratic per-point map and mean pooling can read). The frame's vector is joined with those of the
 frames `lags` before it in the same gap-free run (causal, like the LSTM), and a ridge regression per
-force component maps it to N; each component's strength is chosen on the validation split."""
+force component maps it to N. Each component's strength is chosen by leave-one-recording-out over the
+training and validation recordings: one validation recording at the training orientation chose
+strengths that transferred badly (docs/results.md, the ladder), a dozen folds choose steadily."""
 
 from __future__ import annotations
 
@@ -60,38 +62,45 @@ class RidgeForceModel:
         z = (tokens - self.token_mean) / self.token_std
         return with_lags(pooled_moments(z, decoded.valid), decoded.times_ns, self.lags)
 
-    def _design(self, recordings: list[Decoded], train: bool) -> tuple[np.ndarray, np.ndarray]:
+    def _design(self, decoded: Decoded, train: bool) -> tuple[np.ndarray, np.ndarray]:
         xs, ys = [], []
-        for d in recordings:
-            for mirrored in ((False, True) if train and self.mirror else (False,)):
-                xs.append(self._features(d, mirrored))
-                ys.append(d.force_n * (np.array([1.0, -1.0, 1.0]) if mirrored else 1.0))
+        for mirrored in ((False, True) if train and self.mirror else (False,)):
+            xs.append(self._features(decoded, mirrored))
+            ys.append(decoded.force_n * (np.array([1.0, -1.0, 1.0]) if mirrored else 1.0))
         x, y = np.concatenate(xs), np.concatenate(ys).astype(np.float64)
         known = np.isfinite(y).all(axis=1)
         return x[known], y[known]
 
+    def _solve(self, gram: np.ndarray, rhs: np.ndarray, rows: int, alpha: float) -> np.ndarray:
+        penalty = np.eye(len(gram))
+        penalty[-1, -1] = 0.0  # the intercept is not shrunk
+        return np.linalg.solve(gram + alpha * rows * 1e-3 * penalty, rhs)
+
     def fit(self, train: list[Decoded], val: list[Decoded]) -> RidgeForceModel:
         values = np.concatenate([d.inputs[d.valid] for d in train]).astype(np.float64)
         self.token_mean, self.token_std = values.mean(0), values.std(0) + 1e-6
-        x, y = self._design(train, train=True)
+        designs = [self._design(d, train=True) for d in train]
+        x = np.concatenate([d[0] for d in designs])
         self.feature_mean, self.feature_std = x.mean(0), x.std(0) + 1e-9
-        xs = np.c_[(x - self.feature_mean) / self.feature_std, np.ones(len(x))]
-        xv, yv = self._design(val, train=False)
-        xv = np.c_[(xv - self.feature_mean) / self.feature_std, np.ones(len(xv))]
-        gram, rhs = xs.T @ xs, xs.T @ y
-        penalty = np.eye(len(gram))
-        penalty[-1, -1] = 0.0  # the intercept is not shrunk
+
+        def standard(a: np.ndarray) -> np.ndarray:
+            return np.c_[(a - self.feature_mean) / self.feature_std, np.ones(len(a))]
+
+        parts = [(standard(x), y) for x, y in designs]
+        grams = [(a.T @ a, a.T @ y, len(a)) for a, y in parts]
+        gram, rhs, rows = (sum(g[k] for g in grams) for k in range(3))
+        # folds: each training recording left out in turn (its mirrored copy with it), and validation
+        folds = [(gram - g, rhs - r, rows - n, *self._design(d, train=False))
+                 for (g, r, n), d in zip(grams, train, strict=True)] if len(train) > 1 else []
+        folds += [(gram, rhs, rows, *self._design(d, train=False)) for d in val]
         self.weights = np.zeros((len(gram), 3))
         self.chosen_alphas = []
         for k in range(3):
-            best = None
-            for alpha in self.alphas:
-                w = np.linalg.solve(gram + alpha * len(x) * 1e-3 * penalty, rhs[:, k])
-                rmse = float(np.sqrt(np.mean((xv @ w - yv[:, k]) ** 2)))
-                if best is None or rmse < best[0]:
-                    best = (rmse, alpha, w)
-            self.weights[:, k] = best[2]
-            self.chosen_alphas.append(best[1])
+            errors = [np.mean([np.mean((standard(xv) @ self._solve(g, r[:, k], n, alpha) - yv[:, k]) ** 2)
+                               for g, r, n, xv, yv in folds]) for alpha in self.alphas]
+            alpha = self.alphas[int(np.argmin(errors))]
+            self.weights[:, k] = self._solve(gram, rhs[:, k], rows, alpha)
+            self.chosen_alphas.append(alpha)
         return self
 
     def predict(self, decoded: Decoded) -> np.ndarray:
