@@ -59,6 +59,15 @@ def best_checkpoint(dirpath: str | Path) -> Path:
     return min(candidates, key=val_loss)
 
 
+def adopt_normalisation(model: ForceRegressor, datamodule: LightningDataModule) -> None:
+    """Give the model the training split's statistics before fitting starts, so that callbacks that copy
+    the model when fit begins (EMAWeightAveraging) copy buffers of the right shape."""
+    datamodule.setup("fit")
+    stats = getattr(datamodule, "normalisation", None)
+    if stats is not None:
+        model.set_normalisation(**stats)
+
+
 class ForceCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         parser.description = DESCRIPTION
@@ -99,6 +108,9 @@ class ForceCLI(LightningCLI):
             kwargs["ckpt_path"] = str(best_checkpoint(callback.dirpath))
 
     before_validate = before_test = before_predict = _resolve_best
+
+    def before_fit(self) -> None:
+        adopt_normalisation(self.model, self.datamodule)
 
 
 def make_cli(args: list[str] | None = None, run: bool = True) -> ForceCLI:

@@ -38,7 +38,7 @@ from vfmodels.experiment.runs import run_folder, write_run
 from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant
 from vfmodels.prediction_writer import PredictionCollector
 from vfmodels.regressor import ForceRegressor
-from vfmodels.train import best_checkpoint, make_cli
+from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -125,7 +125,7 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     started = time.perf_counter()
     with _quiet_lightning():
         cli = make_cli(args, run=False)
-        cli.datamodule.setup("fit")  # decoding (or the cache) apart from the training time
+        adopt_normalisation(cli.model, cli.datamodule)  # decoding (or the cache) apart from the training time
         setup_seconds = time.perf_counter() - started
         last = run_dir / "checkpoints" / "last.ckpt"  # resume an interrupted run of this variant and seed
         cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=str(last) if last.is_file() else None)
