@@ -199,8 +199,11 @@ def test_test_orientations_spread_over_the_test_recordings():
     for before, after in zip(glove.recordings, turned.recordings, strict=True):
         assert (before.id, before.split, before.frames) == (after.id, after.split, after.frames)
         assert before.split == "test" or before.orientation_deg == after.orientation_deg
-    with pytest.raises(VisionForceError, match="'mini' has 1 test recording"):
-        with_test_orientations(PRESETS["mini"], [90, 180])
+    # More orientations than test recordings: one more recording of the same length per extra angle.
+    colon = with_test_orientations(PRESETS["colon"], [60, 135, 270])
+    tests = [(r.id, r.orientation_deg, r.frames) for r in colon.recordings if r.split == "test"]
+    assert tests == [("colon_006", 60.0, 398), ("colon_007", 135.0, 398), ("colon_008", 270.0, 398)]
+    assert len({r.index for r in colon.recordings}) == len(colon.recordings)
     with pytest.raises(VisionForceError, match="at least one"):
         with_test_orientations(glove, [])
 

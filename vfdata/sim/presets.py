@@ -162,8 +162,10 @@ def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Pre
     """The preset with its test recordings spread over `orientations` (degrees about the vertical),
     in order and as evenly as possible: of n test recordings and k orientations, recording j gets
     orientation floor(j k / n) (the preset's own 90, 180 over four recordings: 90, 90, 180, 180).
-    Their number, ids and lengths stay; as for the preset's own, the camera's viewpoint and the
-    tissue's place in the image follow from the orientation and the recording's draws."""
+    Their ids and lengths stay; with more orientations than test recordings, test recordings of the
+    same length are added after the others (new ids, new draws), one per orientation. As for the
+    preset's own, the camera's viewpoint and the tissue's place in the image follow from the
+    orientation and the recording's draws."""
     orientations = [float(a) for a in orientations]
     tests = [r for r in preset.recordings if r.split == "test"]
     if not orientations:
@@ -171,9 +173,14 @@ def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Pre
     bad = [a for a in orientations if not math.isfinite(a)]
     if bad:
         raise VisionForceError(f"test orientations: {bad[0]} is not an angle in degrees")
+    if not tests:
+        raise VisionForceError(f"test orientations: preset '{preset.name}' has no test recordings")
     if len(orientations) > len(tests):
-        raise VisionForceError(f"test orientations: preset '{preset.name}' has {len(tests)} test recording(s), "
-                               f"fewer than the {len(orientations)} orientations given")
+        start = len(preset.recordings)
+        extra = tuple(replace(tests[-1], index=start + k, id=f"{preset.name}_{start + k:03d}")
+                      for k in range(len(orientations) - len(tests)))
+        preset = replace(preset, recordings=preset.recordings + extra)
+        tests = list(tests) + list(extra)
     turned = {r.index: orientations[j * len(orientations) // len(tests)] for j, r in enumerate(tests)}
     recordings = tuple(replace(r, orientation_deg=turned[r.index]) if r.index in turned else r
                        for r in preset.recordings)
