@@ -2,8 +2,8 @@
 
 Simulates the `mini` preset (three short recordings: train, validation, test at another orientation),
 converts and processes them, trains VisionForce's model (the default for users) and the paper's
-proposed model for a few epochs, tests them, and prints Table I with the paths of the tables and plots. Budget: 15 minutes
-on 2 CPU cores. Everything already made in DIR is reused, so a second run only re-prints."""
+proposed model for a few epochs, tests them, and prints Table I with the paths of the tables and
+plots. Budget: 15 minutes on 2 CPU cores. Everything already made in DIR is reused, so a second run only re-prints."""
 
 from __future__ import annotations
 

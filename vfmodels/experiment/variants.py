@@ -105,8 +105,17 @@ def _ladder() -> dict[str, Variant]:
 
 LADDER_VARIANTS: dict[str, Variant] = _ladder()
 
+# The project's pipeline on the other trackers' tracks, only by name: whether better tracks (KLT keeps
+# 0.9 mm where it keeps a point; geometry+ also follows the image texture) buy better forces.
+TRACKER_VARIANTS: dict[str, Variant] = {
+    f"{model}@{tracker}": Variant(f"{model}@{tracker}", f"{VISIONFORCE_VARIANTS[model].label.split(' (')[0]} on "
+                                  f"{tracker} tracks", VISIONFORCE_VARIANTS[model].config, tracker, "II",
+                                  kind=VISIONFORCE_VARIANTS[model].kind)
+    for model in ("visionforce", "ridge") for tracker in ("klt", "geometry+")
+}
+
 ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS,
-                                    **LADDER_VARIANTS}
+                                    **LADDER_VARIANTS, **TRACKER_VARIANTS}
 DEFAULT_VARIANTS: tuple[str, ...] = (*VISIONFORCE_VARIANTS, *PAPER_VARIANTS)
 LADDER: tuple[str, ...] = (*LADDER_VARIANTS, *LADDER_MODELS)
 
