@@ -305,7 +305,11 @@ def train_views(rec: Rec, design: Design) -> list[View]:
     s = {"none": [View()], "absy": [View()], "mirror": [View(), View(mirror=True)],
          "canon": [View(mirror=_side(rec) < 0)],
          "rot4": [View(rot_deg=a) for a in (0, 90, 180, 270)],
-         "rot4m": [View(mirror=m, rot_deg=a) for a in (0, 90, 180, 270) for m in (False, True)]}
+         "rot4m": [View(mirror=m, rot_deg=a) for a in (0, 90, 180, 270) for m in (False, True)],
+         "rot8m": [View(mirror=m, rot_deg=a) for a in range(0, 360, 45) for m in (False, True)],
+         "rot12m": [View(mirror=m, rot_deg=a) for a in range(0, 360, 30) for m in (False, True)],
+         # only small turns about the axis (the camera's view of the tube varies a little between recordings)
+         "rot30m": [View(mirror=m, rot_deg=a) for a in (-30, -15, 0, 15, 30) for m in (False, True)]}
     return s[design.sym]
 
 
@@ -526,9 +530,18 @@ def section_estimated(data: dict) -> None:
     table("More designs on the estimated tracks ('processed')", data["processed-mcap"], designs)
 
 
+def section_rotations(data: dict) -> None:
+    lags = (0, 5, 10, 15)
+    designs = [("", Design(("d", "v"), "m12", sym)) for sym in ("mirror", "rot4m", "rot8m", "rot12m", "rot30m")]
+    designs += [("", Design(("d", "v", "cyl0"), "m12", sym)) for sym in ("mirror", "rot4m", "rot8m", "rot12m")]
+    designs += [("", Design(("d", "v", "cyl0"), "m12", "rot8m", lags=lags))]
+    table("Rotations about the object's Z on the estimated tracks ('processed')", data["processed-mcap"], designs)
+
+
 SECTIONS = {"repro": section_repro, "channels": section_channels, "symmetry": section_symmetry,
             "origin": section_origin, "pool": section_pool, "lags": section_lags, "camera": section_camera,
-            "ladder": section_ladder, "estimated": section_estimated}
+            "ladder": section_ladder, "estimated": section_estimated,
+            "rotations": section_rotations}
 
 
 class _Lazy(dict):

@@ -338,3 +338,47 @@ def test_mirror_augmentation_flips_training_clips_only(dataset_root):
     dm = ForceDataModule(str(manifest), spec=spec, progress=False)
     dm.setup("fit")
     assert dm.datasets["train"].augment and not dm.datasets["val"].augment
+
+
+def test_rotation_augmentation_turns_tokens_and_force_together(dataset_root):
+    """Each training clip is turned about the object's Z axis by a random angle: every token 3-vector
+    and the force by the same rotation (z kept), so norms in the XY plane and z are unchanged, and the
+    turned force follows the turned displacement; statistics have zero x/y means and one x/y spread."""
+    _, manifest = dataset_root
+    entries = list(load_manifest(manifest).entries)[:1]
+    spec = ClipSpec(features="polar_disp_vel", rotate_augment=True)
+    plain = ForceClipDataset(entries, spec, progress=False)
+    torch.manual_seed(0)
+    augmented = ForceClipDataset(entries, spec, progress=False, augment=True)
+    angles = []
+    for _ in range(10):
+        item, reference = augmented[1], plain[1]
+        xy, xy_ref = item["tokens"].reshape(16, -1, 3, 3), reference["tokens"].reshape(16, -1, 3, 3)
+        torch.testing.assert_close(xy[..., 2], xy_ref[..., 2])
+        torch.testing.assert_close(xy[..., :2].norm(dim=-1), xy_ref[..., :2].norm(dim=-1), atol=1e-4, rtol=1e-4)
+        # the angle of the rotation, read off the force, turns the reference force into the item's
+        f, f_ref = item["force"][0, :2], reference["force"][0, :2]
+        angle = float(torch.atan2(f[1], f[0]) - torch.atan2(f_ref[1], f_ref[0]))
+        c, s = np.cos(angle), np.sin(angle)
+        turned = reference["tokens"].reshape(16, -1, 3, 3)[..., :2] @ torch.tensor([[c, s], [-s, c]],
+                                                                                  dtype=torch.float32)
+        torch.testing.assert_close(xy[..., :2], turned, atol=1e-3, rtol=1e-3)
+        angles.append(angle % (2 * np.pi))
+    assert np.ptp(angles) > 1.0  # not one fixed turn
+    stats = augmented.normalisation()
+    assert torch.all(stats["input_mean"][0::3] == 0) and torch.all(stats["input_mean"][1::3] == 0)
+    torch.testing.assert_close(stats["input_std"][0::3], stats["input_std"][1::3])
+    assert float(stats["force_mean"][0]) == 0.0 and float(stats["force_mean"][1]) == 0.0
+    assert not torch.all(plain.normalisation()["input_mean"][1::3] == 0)  # plain statistics without augment
+
+
+def test_polar_features_place_each_point_around_the_axis():
+    from vfdata.clips.tokens import point_features
+
+    ref = np.array([[10.0, 0.0, 5.0], [0.0, -20.0, 7.0]])
+    points = np.stack([ref, ref + [[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]]])
+    tokens, ok = point_features(points, np.ones((2, 2), bool), [(0, 2)], 30.0, "polar_disp_vel")
+    assert tokens.shape == (2, 2, 9) and ok.all()
+    np.testing.assert_allclose(tokens[1, 0, :3], [1.0, 0.0, 10.0], atol=1e-6)  # th0 = 0 (up), r0 = 10 mm
+    np.testing.assert_allclose(tokens[1, 1, :3], [0.0, -1.0, 20.0], atol=1e-6)  # th0 = -90 deg
+    np.testing.assert_allclose(tokens[1, 0, 3:6], [1.0, 2.0, 3.0], atol=1e-6)  # displacement, mm

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vfdata.clips.decode import Decoded
-from vfdata.clips.tokens import mirror_tokens, segments
+from vfdata.clips.tokens import segments, transform_tokens, turn_about_z
 
 LAGS = (0, 5, 10, 15)
 ALPHAS = tuple(float(a) for a in np.logspace(-2, 5, 15))
@@ -50,6 +50,9 @@ class RidgeForceModel:
     lags: tuple[int, ...] = LAGS
     alphas: tuple[float, ...] = ALPHAS
     mirror: bool = False  # add training copies mirrored across the object's XZ plane
+    # training copies turned about the object's Z axis by multiples of 90 deg: for pooled first and second
+    # moments, four turns give the same fit as any finer set (bench/study_tokens.py, rotations)
+    rotate: bool = False
     token_mean: np.ndarray | None = field(default=None, repr=False)
     token_std: np.ndarray | None = field(default=None, repr=False)
     feature_mean: np.ndarray | None = field(default=None, repr=False)
@@ -57,16 +60,21 @@ class RidgeForceModel:
     weights: np.ndarray | None = field(default=None, repr=False)  # (D + 1, 3)
     chosen_alphas: list[float] = field(default_factory=list)
 
-    def _features(self, decoded: Decoded, mirrored: bool = False) -> np.ndarray:
-        tokens = mirror_tokens(decoded.inputs) if mirrored else decoded.inputs
+    def _views(self) -> list[np.ndarray]:
+        """The (3, 3) maps of the training copies (identity first)."""
+        angles = np.deg2rad([0, 90, 180, 270]) if self.rotate else [0.0]
+        return [turn_about_z(a, m) for m in ((False, True) if self.mirror else (False,)) for a in angles]
+
+    def _features(self, decoded: Decoded, view: np.ndarray | None = None) -> np.ndarray:
+        tokens = decoded.inputs if view is None else transform_tokens(decoded.inputs, view.astype(np.float32))
         z = (tokens - self.token_mean) / self.token_std
         return with_lags(pooled_moments(z, decoded.valid), decoded.times_ns, self.lags)
 
     def _design(self, decoded: Decoded, train: bool) -> tuple[np.ndarray, np.ndarray]:
         xs, ys = [], []
-        for mirrored in ((False, True) if train and self.mirror else (False,)):
-            xs.append(self._features(decoded, mirrored))
-            ys.append(decoded.force_n * (np.array([1.0, -1.0, 1.0]) if mirrored else 1.0))
+        for view in (self._views() if train else [np.eye(3)]):
+            xs.append(self._features(decoded, view))
+            ys.append(decoded.force_n @ view.T)
         x, y = np.concatenate(xs), np.concatenate(ys).astype(np.float64)
         known = np.isfinite(y).all(axis=1)
         return x[known], y[known]
@@ -77,7 +85,8 @@ class RidgeForceModel:
         return np.linalg.solve(gram + alpha * rows * 1e-3 * penalty, rhs)
 
     def fit(self, train: list[Decoded], val: list[Decoded]) -> RidgeForceModel:
-        values = np.concatenate([d.inputs[d.valid] for d in train]).astype(np.float64)
+        values = np.concatenate([transform_tokens(d.inputs[d.valid], v.astype(np.float32))
+                                 for d in train for v in self._views()]).astype(np.float64)
         self.token_mean, self.token_std = values.mean(0), values.std(0) + 1e-6
         designs = [self._design(d, train=True) for d in train]
         x = np.concatenate([d[0] for d in designs])

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from vfdata.clips.decode import Decoded, decode_recording
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import clip_starts, frame_rate, mirror_tokens, segments
+from vfdata.clips.tokens import clip_starts, frame_rate, segments, transform_tokens, turn_about_z
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry, load_manifest
 
@@ -41,7 +41,7 @@ class ForceClipDataset(Dataset):
             raise TypeError("ForceClipDataset takes manifest entries; for a manifest file use "
                             "ForceClipDataset.from_manifest(path, split=...)")
         self.spec = spec or ClipSpec()
-        self.augment = augment  # training only: the spec's augmentations (mirror_augment) are applied
+        self.augment = augment  # training only: the spec's augmentations (mirror, rotation) are applied
         self.entries = list(recordings)
         self.recordings: list[Decoded] = [
             decode_recording(e, self.spec, cache_dir)
@@ -85,11 +85,21 @@ class ForceClipDataset(Dataset):
             item["depth"] = item["depth"].float()
         if d.valid is not None:
             item["valid"] = torch.from_numpy(np.ascontiguousarray(d.valid[window]))
-        if self.augment and self.spec.mirror_augment and torch.rand(()) < 0.5:
-            item["tokens"] = torch.from_numpy(mirror_tokens(item["tokens"].numpy()))
-            item["force"] = item["force"] * torch.tensor([1.0, -1.0, 1.0])
-            item["side"] = -item["side"]
+        if self.augment and (self.spec.mirror_augment or self.spec.rotate_augment):
+            self._augment(item)
         return item
+
+    def _augment(self, item: dict) -> None:
+        """Mirror across the object's XZ plane (probability 1/2) and turn about its Z axis (uniform
+        angle), as the spec asks: points and force alike. torch's generator, so that each data-loader
+        worker draws its own."""
+        mirror = bool(self.spec.mirror_augment and torch.rand(()) < 0.5)
+        angle = float(torch.rand(()) * 2 * np.pi) if self.spec.rotate_augment else 0.0
+        matrix = turn_about_z(angle, mirror)
+        item["tokens"] = torch.from_numpy(transform_tokens(item["tokens"].numpy(), matrix.astype(np.float32)))
+        item["force"] = item["force"] @ torch.from_numpy(matrix.T.astype(np.float32))
+        if mirror:
+            item["side"] = -item["side"]
 
     def normalisation(self) -> dict[str, torch.Tensor]:
         """Input and force statistics of this dataset (every frame of its recordings once): tokens
@@ -99,11 +109,13 @@ class ForceClipDataset(Dataset):
         force = force[np.isfinite(force).all(axis=1)]
         if len(force) < 2:
             raise InputError(self.entries[0].mcap if self.entries else Path("."), "no force samples for statistics")
-        stats = {"force_mean": torch.tensor(force.mean(0)), "force_std": torch.tensor(force.std(0) + 1e-6)}
+        mean, std = self._symmetric_moments(force.astype(np.float64))
+        stats = {"force_mean": torch.tensor(mean), "force_std": torch.tensor(std + 1e-6)}
         if self.spec.input_key == "tokens":
             values = np.concatenate([d.inputs[d.valid] for d in self.recordings]).astype(np.float64)
-            stats["input_mean"] = torch.tensor(values.mean(0))
-            stats["input_std"] = torch.tensor(values.std(0) + 1e-6)
+            mean, std = self._symmetric_moments(values)
+            stats["input_mean"] = torch.tensor(mean)
+            stats["input_std"] = torch.tensor(std + 1e-6)
         elif self.spec.input_key == "depth":
             values = np.concatenate([d.inputs[d.inputs > 0] for d in self.recordings]).astype(np.float64)
             stats["input_mean"] = torch.tensor([values.mean()])
@@ -111,6 +123,19 @@ class ForceClipDataset(Dataset):
         else:
             stats["input_mean"], stats["input_std"] = torch.zeros(0), torch.zeros(0)
         return {k: v.float() for k, v in stats.items()}
+
+
+    def _symmetric_moments(self, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per-channel mean and std of (M, C) 3-vector channels over what training will see: with the
+        mirror, y has mean 0; with the rotation about Z, x and y have mean 0 and one shared spread.
+        Without augmentation, the plain moments."""
+        mean, second = values.mean(0), (values ** 2).mean(0)
+        if self.augment and (self.spec.mirror_augment or self.spec.rotate_augment):
+            mean[1::3] = 0.0
+            if self.spec.rotate_augment:
+                mean[0::3] = 0.0
+                second[0::3] = second[1::3] = 0.5 * (second[0::3] + second[1::3])
+        return mean, np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
 def collate_clips(items: list[dict]) -> dict:

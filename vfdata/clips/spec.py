@@ -12,10 +12,10 @@ from vfdata.errors import VisionForceError
 Input = Literal["tracks", "cloud", "rgb", "depth"]
 Source = Literal["processed", "ground_truth", "ground_truth_surface"]
 Frame = Literal["object", "camera"]
-Features = Literal["pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel"]
+Features = Literal["pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel", "polar_disp_vel"]
 Subset = Literal["all", "top_bottom_20"]
 
-FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "ref_disp_vel": 9}
+FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "ref_disp_vel": 9, "polar_disp_vel": 9}
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 
@@ -35,7 +35,9 @@ class ClipSpec:
         features: per-point channels, each a 3-vector: pos_vel (position mm + velocity mm/s, the
             paper's), pos, vel, disp_vel (displacement from the point's position on the recording's
             first frame, mm, + velocity: deformation, not where the point is) or ref_disp_vel (that
-            first-frame position, the displacement and the velocity).
+            first-frame position, the displacement and the velocity) or polar_disp_vel (where the point sits
+            around the object's Z axis on its first frame as (cos th0, sin th0, r0 mm), th0 measured from X =
+            up, then the displacement and the velocity: no position along Z, so no origin needed).
         subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
         clip_frames: frames per clip (T).
         stride: frames between clip starts.
@@ -49,6 +51,9 @@ class ClipSpec:
         mirror_augment: in training, mirror each clip across the object's XZ plane with probability
             1/2 (the y of every token vector and Fy negated): the tube hanging under gravity is
             symmetric about that plane, so a mirrored clip is a valid clip; beyond the paper.
+        rotate_augment: in training, turn each clip about the object's Z axis by a uniform random angle (the
+            x, y of every token vector and Fx, Fy with it): the tube is nearly round, so a view of another
+            part of its circumference is nearly a valid clip; beyond the paper.
     """
 
     input: Input = "tracks"
@@ -65,6 +70,7 @@ class ClipSpec:
     seed: int = 0
     canonical_side: bool = False
     mirror_augment: bool = False
+    rotate_augment: bool = False
 
     def __post_init__(self) -> None:
         # jsonargparse checks the Literal types on the command line; this checks them in Python too
@@ -75,10 +81,10 @@ class ClipSpec:
                 raise VisionForceError(f"{name} '{getattr(self, name)}' is not one of {', '.join(allowed)}")
         if self.clip_frames < 1 or self.stride < 1:
             raise VisionForceError("clip_frames and stride must be positive")
-        for name in ("canonical_side", "mirror_augment"):
+        for name in ("canonical_side", "mirror_augment", "rotate_augment"):
             if getattr(self, name) and (self.input != "tracks" or self.frame != "object"):
-                raise VisionForceError(f"{name} mirrors tracked points in the object frame (input tracks, frame "
-                                       "object): the camera frame does not know the object's plane of symmetry")
+                raise VisionForceError(f"{name} moves tracked points in the object frame (input tracks, frame "
+                                       "object): the camera frame does not know the object's symmetries")
 
     @property
     def input_key(self) -> str:

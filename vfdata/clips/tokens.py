@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vfdata.clips.spec import ClipSpec
+from vfdata.clips.spec import FEATURE_CHANNELS, ClipSpec
 from vfdata.errors import VisionForceError
 
 GAP_FACTOR = 1.5  # a frame interval longer than this many nominal periods is a gap
@@ -97,8 +97,8 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
     or non-finite points are zeroed and marked invalid; velocities of points next to an invalid
     sample are too. Displacements are from `reference_mm` (N, 3), by default each point's first valid
     position in `points_mm`."""
-    if features not in ("pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel"):
-        raise VisionForceError(f"unknown features '{features}' (choose from pos_vel, pos, vel, disp_vel, ref_disp_vel)")
+    if features not in FEATURE_CHANNELS:
+        raise VisionForceError(f"unknown features '{features}' (choose from {', '.join(FEATURE_CHANNELS)})")
     p = np.asarray(points_mm, dtype=np.float64)
     ok = np.asarray(valid, dtype=bool) & np.isfinite(p).all(axis=-1)
     p = np.where(ok[..., None], p, 0.0)
@@ -109,6 +109,8 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
         ref = np.nan_to_num(ref)
         if features.startswith("ref"):
             parts.append(np.broadcast_to(ref, p.shape))
+        elif features.startswith("polar"):
+            parts.append(np.broadcast_to(polar_place(ref), p.shape))
         parts.append(p - ref)
     elif features in ("pos_vel", "pos"):
         parts.append(p)
@@ -124,11 +126,36 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
     return np.where(ok[..., None], tokens, 0.0).astype(np.float32), ok
 
 
+def polar_place(reference_mm: np.ndarray) -> np.ndarray:
+    """(N, 3) object-frame positions -> (N, 3) (cos th, sin th, r mm): where each point sits around the
+    Z axis, th from X (= up). Stored as a 3-vector whose x, y turn with a rotation about Z and whose y
+    flips with the mirror across XZ, so `transform_tokens` handles it like the other channels."""
+    ref = np.asarray(reference_mm, dtype=np.float64)
+    r = np.hypot(ref[:, 0], ref[:, 1])
+    th = np.arctan2(ref[:, 1], ref[:, 0])
+    return np.stack([np.cos(th), np.sin(th), r], axis=-1)
+
+
 def mirror_tokens(tokens: np.ndarray) -> np.ndarray:
     """Tokens (..., C) of 3-vectors in the object frame mirrored across its XZ plane (every y negated)."""
     flip = np.ones(tokens.shape[-1], dtype=tokens.dtype)
     flip[1::3] = -1
     return tokens * flip
+
+
+def turn_about_z(angle_rad: float, mirror: bool = False) -> np.ndarray:
+    """(3, 3) rotation about the object's Z axis by `angle_rad`, after the mirror across XZ if asked.
+    Both keep z, so they act on every token 3-vector and on the force alike."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return turn @ np.diag([1.0, -1.0 if mirror else 1.0, 1.0])
+
+
+def transform_tokens(tokens: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Tokens (..., C) of 3-vectors with `matrix` (3, 3) applied to each (a `turn_about_z`)."""
+    shape = tokens.shape
+    triples = tokens.reshape(*shape[:-1], shape[-1] // 3, 3)
+    return (triples @ np.asarray(matrix, dtype=tokens.dtype).T).reshape(shape)
 
 
 def top_bottom(reference_mm: np.ndarray, fraction: float = TOP_BOTTOM_FRACTION) -> np.ndarray:
