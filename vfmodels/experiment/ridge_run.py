@@ -37,7 +37,8 @@ def run_ridge(variant: Variant, seed: int, config: Path, manifest_path: Path, ru
     started = time.perf_counter()
     splits = {s: ForceClipDataset(manifest.split(s), spec, cache_dir, progress=False) for s in ("train", "val", "test")}
     setup_seconds = time.perf_counter() - started
-    model = RidgeForceModel(mirror=spec.mirror_augment, rotate=spec.rotate_augment).fit(splits["train"].recordings, splits["val"].recordings)
+    model = RidgeForceModel(mirror=spec.mirror_augment, rotate=spec.rotate_augment)
+    model.fit(splits["train"].recordings, splits["val"].recordings)
     train_seconds = time.perf_counter() - started - setup_seconds
     test = splits["test"]
     parts = {k: [] for k in ("recording", "orientation_deg", "frame_time_ns", "pred", "true")}
