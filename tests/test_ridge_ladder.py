@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_datasets import T0, frame_times, write_manifest, write_recording
 from test_experiment import _fake_runs
 from test_experiment import write_manifest as write_toy_manifest
@@ -73,3 +74,17 @@ def test_ladder_table(tmp_path):
     row = next(line for line in text.splitlines() if line.startswith("| visionforce |"))
     cells = [c.strip() for c in row.strip("|").split("|")][1:]
     assert cells[1] == "–" and cells[0] != "–" and cells[-1] != "–"  # visible rung not run
+
+
+@pytest.mark.parametrize("name", ["visionforce_displacement_only", "visionforce_velocity_only"])
+def test_visionforce_feature_ablations_build_a_model_for_their_tokens(name):
+    """The ablations of the project's pipeline parse through the LightningCLI with their overrides, and
+    the network's input width matches the tokens the spec makes (3 channels each)."""
+    from vfmodels.train import make_cli
+
+    variant = ALL_VARIANTS[name]
+    cli = make_cli([f"--config={runner.CONFIGS / variant.config}", "--trainer.accelerator=cpu",
+                    "--trainer.logger=false", *variant.overrides], run=False)
+    spec = cli.datamodule.spec
+    assert spec.channels == 3 and spec.features in ("disp", "vel")
+    assert cli.model.model.embed.in_features == spec.channels

@@ -12,10 +12,11 @@ from vfdata.errors import VisionForceError
 Input = Literal["tracks", "cloud", "rgb", "depth"]
 Source = Literal["processed", "ground_truth", "ground_truth_surface"]
 Frame = Literal["object", "camera"]
-Features = Literal["pos_vel", "pos", "vel", "disp_vel", "ref_disp_vel", "polar_disp_vel"]
+Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel"]
 Subset = Literal["all", "top_bottom_20"]
 
-FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "ref_disp_vel": 9, "polar_disp_vel": 9}
+FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "disp": 3, "ref_disp_vel": 9,
+                    "polar_disp_vel": 9}
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 

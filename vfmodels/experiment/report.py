@@ -5,6 +5,7 @@ what has run is shown."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,10 @@ def load_runs(out: Path) -> dict[str, list[dict]]:
         curves = tables.read_epoch_curves(metrics_path.parent)
         if len(curves["epoch"]):
             run["training"] = tables.training_summary(curves)
+            # a config that keeps the last weights (no monitor) is tested at its last epoch, not the best
+            tested = re.search(r"epoch(\d+)", Path(json.loads(metrics_path.read_text()).get("checkpoint", "")).name)
+            if tested:
+                run["training"]["best_epoch"] = int(tested.group(1))
         found.setdefault(metrics_path.parent.parent.name, []).append(run)
     order = [n for n in ALL_VARIANTS if n in found] + sorted(set(found) - set(ALL_VARIANTS))
     return {name: found[name] for name in order}
@@ -109,6 +114,14 @@ def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
     halves("visionforce_object_frame_halves_rmse", "visionforce", "visionforce_camera_frame",
            "visionforce: the object frame lowers the average RMSE by >= 50% vs the camera frame")
     compare("visionforce_beats_proposed", "visionforce", "proposed", "visionforce beats the paper's proposed model")
+    compare("visionforce_geometry_beats_klt", "visionforce", "visionforce@klt",
+            "visionforce: geometry tracking beats KLT")
+    compare("visionforce_beats_displacement_only", "visionforce", "visionforce_displacement_only",
+            "visionforce: displacement + velocity beats displacement only")
+    compare("visionforce_beats_velocity_only", "visionforce", "visionforce_velocity_only",
+            "visionforce: displacement + velocity beats velocity only")
+    compare("visionforce_beats_rgb", "visionforce", "rgb", "visionforce beats RGB only")
+    compare("visionforce_beats_depth_vit", "visionforce", "depth_vit", "visionforce beats masked depth + ViT")
     compare("geometry_beats_klt", "proposed", "klt", "geometry tracking beats KLT")
     compare("geometry_plus_beats_klt", "geometry_plus", "klt", "geometry+ tracking (beyond the paper) beats KLT")
     compare("beats_position_only", "proposed", "position_only", "position + velocity beats position only")

@@ -48,6 +48,14 @@ VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
             kind="ridge"),
 )}
 
+# The paper's feature ablation for the project's pipeline, only by name: displacement alone, velocity alone.
+VISIONFORCE_ABLATIONS: dict[str, Variant] = {v.name: v for v in (
+    Variant("visionforce_displacement_only", "VisionForce, displacement only", "visionforce.yaml",
+            overrides=("--data.spec.features=disp", "--model.model.init_args.in_features=3")),
+    Variant("visionforce_velocity_only", "VisionForce, velocity only", "visionforce.yaml",
+            overrides=("--data.spec.features=vel", "--model.model.init_args.in_features=3")),
+)}
+
 # The paper's grid: `proposed` is the paper's method, faithfully; the ablations and baselines around it.
 PAPER_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("proposed", "Proposed (object frame, geometry tracking)", "proposed.yaml", table="I+II"),
@@ -114,8 +122,8 @@ TRACKER_VARIANTS: dict[str, Variant] = {
     for model in ("visionforce", "ridge") for tracker in ("klt", "geometry+")
 }
 
-ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **PAPER_VARIANTS, **SIMULATOR_VARIANTS, **EXTRA_VARIANTS,
-                                    **LADDER_VARIANTS, **TRACKER_VARIANTS}
+ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **VISIONFORCE_ABLATIONS, **PAPER_VARIANTS,
+                                    **SIMULATOR_VARIANTS, **EXTRA_VARIANTS, **LADDER_VARIANTS, **TRACKER_VARIANTS}
 DEFAULT_VARIANTS: tuple[str, ...] = (*VISIONFORCE_VARIANTS, *PAPER_VARIANTS)
 LADDER: tuple[str, ...] = (*LADDER_VARIANTS, *LADDER_MODELS)
 

@@ -134,7 +134,7 @@ def force_table_markdown(table: Mapping[str, Mapping], labels: Mapping[str, str]
     trained = [f"{labels.get(variant, variant)} {_epochs_text(agg)}" for variant, agg in table.items()
                if _has_training(agg)]
     if trained:
-        lines.append(f"Epochs trained (best validation epoch, counted from 0 as in the checkpoint names; "
+        lines.append(f"Epochs trained (epoch of the tested checkpoint, counted from 0 as in the checkpoint names; "
                      f"one per seed): {'; '.join(trained)}.")
     return "\n".join(lines) + "\n"
 
