@@ -11,7 +11,8 @@ was damaged; a valid file read by a scan has none."""
 from __future__ import annotations
 
 from array import array
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from mcap.opcode import Opcode
@@ -36,11 +37,20 @@ from vfdata.recording.mcaprecords import (
     parse,
 )
 
-if TYPE_CHECKING:
-    from vfdata.recording.mcapfile import McapFile
+
+class McapSource(Protocol):
+    """What the index builder reads a file through (`vfdata.recording.mcapfile.McapFile` is one): its
+    path and size in bytes, bytes at an offset, and a chunk's records checked against its CRC."""
+
+    path: Path
+    size: int
+
+    def read_at(self, offset: int, size: int) -> bytes: ...
+
+    def read_chunk(self, chunk: Chunk, problems: list[str]) -> bytes | memoryview: ...
 
 
-def build_index(file: McapFile) -> McapIndex:
+def build_index(file: McapSource) -> McapIndex:
     return _Builder(file).build()
 
 
@@ -96,7 +106,7 @@ class _Entries:
 
 
 class _Builder:
-    def __init__(self, file: McapFile):
+    def __init__(self, file: McapSource):
         self.file = file
         self.path = file.path
         self.index = McapIndex()
