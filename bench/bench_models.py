@@ -1,11 +1,12 @@
-"""Speed of the proposed force model (SetTransformerLSTM, 256 points x 6 features, T = 16).
+"""Speed of the force models (SetTransformerLSTM, 256 points x 6 features, T = 16): the network of
+`configs/<model>.yaml`, the paper's `proposed` (default) or the project's smaller `visionforce`.
 
 Prints, for each variant (eager / torch.compile, fp32 / bf16 autocast, fused / unfused attention):
 - inference throughput, batched (frames/s; target >= 2,000 on 2 CPU cores),
 - single-clip latency (ms per 16-frame clip, batch 1),
 - training throughput (frames/s, forward + backward + AdamW step; target >= 400 on 2 CPU cores).
 
-    python bench/bench_models.py [--threads 2] [--device cpu|cuda] [--quick]
+    python bench/bench_models.py [--model proposed|visionforce] [--threads 2] [--device cpu|cuda] [--quick]
 
 Timings on a shared machine vary with its load: the script prints the load average next to them.
 """
@@ -16,13 +17,22 @@ import argparse
 import contextlib
 import os
 import time
+from pathlib import Path
 
 import torch
+import yaml
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vfmodels import ForceRegressor, SetTransformerLSTM
 
 T, N, C = 16, 256, 6
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def network_args(model: str) -> dict:
+    """The SetTransformerLSTM arguments of a training config (`configs/<model>.yaml`)."""
+    config = yaml.safe_load((CONFIGS / f"{model}.yaml").read_text())
+    return dict(config["model"]["model"]["init_args"])
 
 
 def clips(batch: int, device: str) -> dict[str, torch.Tensor]:
@@ -62,7 +72,7 @@ def attention(fused: bool):
 
 def bench_variant(compiled: bool, bf16: bool, fused: bool, args) -> dict[str, float]:
     torch.manual_seed(0)
-    model = SetTransformerLSTM(in_features=C).to(args.device)
+    model = SetTransformerLSTM(**network_args(args.model)).to(args.device)
     run = torch.compile(model) if compiled else model
     out = {}
 
@@ -94,6 +104,8 @@ def bench_variant(compiled: bool, bf16: bool, fused: bool, args) -> dict[str, fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", choices=["proposed", "visionforce"], default="proposed",
+                        help="whose network: configs/<model>.yaml (default proposed)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--batch", type=int, default=16, help="clips per inference batch")
@@ -113,7 +125,8 @@ def main() -> None:
         variants = [(compiled == "compiled", precision_name == "bf16", attn == "fused")]
     device_name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {args.threads} threads"
     print(
-        f"SetTransformerLSTM, clips of T={T} frames x N={N} points x C={C}; {device_name}; "
+        f"SetTransformerLSTM of configs/{args.model}.yaml, clips of T={T} frames x N={N} points x C={C}; "
+        f"{device_name}; "
         f"inference batch {args.batch} clips, training batch {args.train_batch} clips"
     )
     print("wall figures, and in brackets the same from this process's CPU time / threads (what the cores "
