@@ -172,3 +172,24 @@ def test_experiment_end_to_end_on_a_tiny_simulated_dataset(tmp_path):
     again = runner.run_experiment(manifest, tmp_path / "results", options)
     assert (tmp_path / "results" / "runs" / "proposed" / "seed0" / "metrics.json").stat().st_mtime_ns == stamp
     assert again.seconds["train_test"] < 5.0
+
+
+def test_transfer_table_compares_each_test_orientation_with_validation(tmp_path):
+    """A run's metrics.json with the validation split's metrics ("val", as write_run writes it) gives a
+    transfer table: the validation RMSE, each orientation's, and the worst orientation's ratio."""
+    from vfmodels.experiment.runs import write_run
+
+    manifest = write_manifest(tmp_path)
+    out = tmp_path / "results"
+    run = out / "runs" / "visionforce" / "seed0"
+    run.mkdir(parents=True)
+    test = _fake_predictions(0.2, 0)
+    validation = {**_fake_predictions(0.1, 1), "orientation_deg": np.zeros(len(test["true"]))}
+    summary = write_run(run, test, {"variant": "visionforce"}, validation)
+    assert summary["val"]["rmse"] < summary["pooled"]["rmse"]
+    paths = report.write_reports(out, manifest)
+    text = paths["transfer.md"].read_text()
+    per = {float(k): g["rmse"] for k, g in summary["groups"].items()}
+    worst = max(per.values()) / summary["val"]["rmse"]
+    assert f"{summary['val']['rmse']:.3f}" in text and f"{worst:.2f}" in text
+    assert all(f"{a:g}°" in text for a in per)

@@ -32,11 +32,14 @@ def load_runs(out: Path) -> dict[str, list[dict]]:
     for metrics_path in sorted((out / "runs").glob("*/seed*/metrics.json")):
         with np.load(metrics_path.parent / "predictions.npz", allow_pickle=False) as predictions:
             run = run_metrics(dict(predictions))
+        summary = json.loads(metrics_path.read_text())
+        if "val" in summary:
+            run["val"] = summary["val"]
         curves = tables.read_epoch_curves(metrics_path.parent)
         if len(curves["epoch"]):
             run["training"] = tables.training_summary(curves)
             # a config that keeps the last weights (no monitor) is tested at its last epoch, not the best
-            tested = re.search(r"epoch(\d+)", Path(json.loads(metrics_path.read_text()).get("checkpoint", "")).name)
+            tested = re.search(r"epoch(\d+)", Path(summary.get("checkpoint", "")).name)
             if tested:
                 run["training"]["best_epoch"] = int(tested.group(1))
         found.setdefault(metrics_path.parent.parent.name, []).append(run)
@@ -62,6 +65,10 @@ def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str) -> dict[s
     if any("@" in name for name in aggregated):
         (out / "ladder.md").write_text(ladder_markdown(aggregated, dataset))
         paths["ladder.md"] = out / "ladder.md"
+    transfer = tables.transfer_markdown(runs, labels, dataset)
+    if transfer:
+        (out / "transfer.md").write_text(transfer)
+        paths["transfer.md"] = out / "transfer.md"
     checked = claims(aggregated)
     if checked:
         (out / "claims.json").write_text(json.dumps(checked, indent=2))

@@ -40,19 +40,22 @@ def run_ridge(variant: Variant, seed: int, config: Path, manifest_path: Path, ru
     model = RidgeForceModel(mirror=spec.mirror_augment, rotate=spec.rotate_augment)
     model.fit(splits["train"].recordings, splits["val"].recordings)
     train_seconds = time.perf_counter() - started - setup_seconds
-    test = splits["test"]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return write_run(run_dir, _predictions(model, splits["test"]), {
+        "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config), "kind": "ridge",
+        "alphas": model.chosen_alphas, "setup_seconds": round(setup_seconds, 1),
+        "train_seconds": round(train_seconds, 1)}, _predictions(model, splits["val"]))
+
+
+def _predictions(model: RidgeForceModel, split: ForceClipDataset) -> dict[str, np.ndarray]:
+    """Every frame of a split's recordings: the arrays of a run's predictions.npz."""
     parts = {k: [] for k in ("recording", "orientation_deg", "frame_time_ns", "pred", "true")}
     unmirror = np.array([1.0, -1.0, 1.0])
-    for entry, decoded in zip(test.entries, test.recordings, strict=True):
+    for entry, decoded in zip(split.entries, split.recordings, strict=True):
         flip = unmirror if decoded.side < 0 else 1.0
         parts["recording"].append(np.full(len(decoded.times_ns), entry.id))
         parts["orientation_deg"].append(np.full(len(decoded.times_ns), entry.orientation_deg))
         parts["frame_time_ns"].append(decoded.times_ns)
         parts["pred"].append(model.predict(decoded) * flip)
         parts["true"].append(decoded.force_n.astype(np.float64) * flip)
-    predictions = {k: np.concatenate(v) for k, v in parts.items()}
-    run_dir.mkdir(parents=True, exist_ok=True)
-    return write_run(run_dir, predictions, {
-        "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config), "kind": "ridge",
-        "alphas": model.chosen_alphas, "setup_seconds": round(setup_seconds, 1),
-        "train_seconds": round(train_seconds, 1)})
+    return {k: np.concatenate(v) for k, v in parts.items()}

@@ -134,13 +134,14 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     regressor = ForceRegressor.load(best)
     cli.datamodule.setup("test")
     predictions, force_fps = test_predictions(regressor, cli.datamodule.test_dataloader())
+    validation, _ = test_predictions(regressor, cli.datamodule.val_dataloader())
     summary = {
         "variant": variant.name, "seed": seed, "tracker": variant.tracker, "config": str(config),
         "checkpoint": str(Path(best).resolve()), "epochs": cli.trainer.current_epoch,
         "setup_seconds": round(setup_seconds, 1), "train_seconds": round(train_seconds, 1),
         "force_fps": force_fps, "torch_threads": torch.get_num_threads(),
     }
-    return write_run(run_dir, predictions, summary)
+    return write_run(run_dir, predictions, summary, validation)
 
 
 @dataclass

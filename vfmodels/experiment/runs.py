@@ -1,5 +1,7 @@
 """A finished run's folder: `OUT/runs/<variant>/seed<k>/` with predictions.npz (the test frames:
-recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and metrics.json, written last."""
+recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and metrics.json, written last
+(with the validation split's pooled metrics under "val", the reference a test orientation's error is
+compared with)."""
 
 from __future__ import annotations
 
@@ -16,13 +18,17 @@ def run_folder(out: Path, variant: Variant, seed: int) -> Path:
     return out / "runs" / variant.name / f"seed{seed}"
 
 
-def write_run(run_dir: Path, predictions: dict[str, np.ndarray], summary: dict) -> dict:
-    """predictions.npz, then metrics.json (written last: the marker of a finished run)."""
+def write_run(run_dir: Path, predictions: dict[str, np.ndarray], summary: dict,
+              validation: dict[str, np.ndarray] | None = None) -> dict:
+    """predictions.npz, then metrics.json (written last: the marker of a finished run); `validation`:
+    the same per-frame arrays on the validation split, summarised as "val"."""
     np.savez_compressed(run_dir / "predictions.npz", **predictions)
     metrics = run_metrics(predictions)
     groups = {str(k): v for k, v in metrics["groups"].items()}
     summary = {**summary, "test_frames": int(len(predictions["true"])), "pooled": metrics["pooled"],
                "mean": metrics["mean"], "std": metrics["std"], "groups": groups}
+    if validation is not None:
+        summary["val"] = run_metrics(validation)["pooled"]
     tmp = run_dir / "metrics.json.partial"
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(run_dir / "metrics.json")

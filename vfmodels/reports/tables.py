@@ -59,6 +59,28 @@ def run_metrics(predictions: Mapping[str, np.ndarray]) -> dict:
                                  orientation)
 
 
+def transfer_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, str], dataset: str) -> str:
+    """How each model's error at every test orientation compares with its error on the validation
+    recordings (the training orientation): avg RMSE (N), means over the seeds that logged validation;
+    the last column is the worst orientation's ratio to validation. Empty when no run has "val"."""
+    rows = {name: [r for r in found if "val" in r] for name, found in runs.items()}
+    rows = {name: found for name, found in rows.items() if found}
+    if not rows:
+        return ""
+    angles = sorted({float(a) for found in rows.values() for r in found for a in r["groups"]})
+    lines = [f"**Transfer on {dataset}: avg RMSE (N) on the validation recordings and at each test orientation**",
+             "", "| model | seeds | validation | " + " | ".join(f"{a:g}°" for a in angles)
+             + " | worst / validation |", "| --- | ---: | ---: |" + " ---: |" * (len(angles) + 1)]
+    for name, found in rows.items():
+        val = float(np.mean([r["val"]["rmse"] for r in found]))
+        per = [np.mean([r["groups"][k]["rmse"] for r in found for k in r["groups"] if float(k) == a] or [np.nan])
+               for a in angles]
+        worst = np.nanmax(per) / val if val > 0 else np.nan
+        lines.append(f"| {labels.get(name, name)} | {len(found)} | {val:.3f} | "
+                     + " | ".join("–" if not np.isfinite(v) else f"{v:.3f}" for v in per) + f" | {worst:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
 def aggregate_seeds(runs: Sequence[Mapping]) -> dict:
     """Per metric key (e.g. "rmse_fx", "r2"): the pooled value's mean and std over seeds, and the
     across-orientation std averaged over seeds. Input: a list of `run_metrics` results (one per seed).
