@@ -10,6 +10,7 @@ from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_folder import convert_raw_folder
+from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
 from vfdata.errors import InputError
 
 
@@ -28,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
                         f"{default_workers()} here)")
+    p.add_argument("--meta", type=Path, default=None,
+                   help="RGB-D folder: the meta.yaml to use when it is not in the folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_bag_arguments(p)
@@ -42,7 +45,13 @@ def run(args: argparse.Namespace) -> int:
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
         force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet, **threads,
     )
-    if is_bag(args.src):
+    rgbd = not is_bag(args.src) and is_rgbd_folder(args.src)
+    if args.meta is not None and not rgbd:
+        raise InputError(args.src, "--meta applies to RGB-D raw folders (depth/ and color/) only")
+    if rgbd:
+        out = convert_rgbd_folder(args.src, args.out, overwrite=args.overwrite, options=options,
+                                  calibration=args.calibration, meta=args.meta)
+    elif is_bag(args.src):
         out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, **bag_arguments(args))
     else:
         out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options)

@@ -39,7 +39,8 @@ def add_bag_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"ECM pose, PoseStamped or TransformStamped (default {bag_topics.POSE_DEFAULTS[0]}; "
                         f"'{bag_topics.NO_TOPIC}' to leave it out)")
     g.add_argument("--calibration", type=Path, metavar="YAML",
-                   help="stereo calibration (docs/raw_layout.md) to use instead of the bag's CameraInfo")
+                   help="stereo calibration (docs/raw_layout.md) to use instead of the bag's CameraInfo; "
+                        "for an RGB-D raw folder, its rgbd_calibration.yaml when not in the folder")
     g.add_argument("--pair-tolerance-ms", type=float, metavar="MS",
                    help="largest left/right stamp difference of a stereo pair (default half the frame period)")
 

@@ -155,21 +155,35 @@ class _SeriesWriter:
             self.done[i] += n
 
 
+@dataclass(frozen=True)
+class View:
+    """One camera view of a recording: its image topic and message type, and its CameraInfo topic."""
+
+    image_topic: str
+    image_msgtype: str
+    info_topic: str
+
+
+STEREO_VIEWS = (View(layout.LEFT_IMAGE, CompressedImage.msgtype, layout.LEFT_INFO),
+                View(layout.RIGHT_IMAGE, CompressedImage.msgtype, layout.RIGHT_INFO))
+
+
 def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record: layout.RecordingMeta,
-                    infos: tuple[CameraInfo, CameraInfo], tf: TFMessage, frame_ns: np.ndarray,
-                    frames: Iterable[T], encode: Callable[[T], tuple[bytes, bytes]],
-                    series: list[StampedSeries], name: str) -> None:
+                    infos: tuple[CameraInfo, ...], tf: TFMessage, frame_ns: np.ndarray,
+                    frames: Iterable[T], encode: Callable[[T], tuple[bytes, ...]],
+                    series: list[StampedSeries], name: str, views: tuple[View, ...] = STEREO_VIEWS) -> None:
     """Write the recording to `out` (atomically: nothing is left on any error).
 
-    `frames` yields one item per stereo frame, in frame order; `encode(item)` (called on the encoding
-    threads) turns item k into the CompressedImage payloads of its left and right image, stamped
-    `frame_ns[k]`. The camera infos (restamped each frame) and the transform (stamped with the first
-    frame) come from the camera model. `name` labels the progress bar."""
+    `frames` yields one item per frame, in frame order; `encode(item)` (called on the encoding
+    threads) turns item k into the image payloads of its views (default: the left and right
+    CompressedImage), stamped `frame_ns[k]`. The camera infos (one per view, restamped each frame)
+    and the transform (stamped with the first frame) come from the camera model. `name` labels the
+    progress bar."""
     first = int(frame_ns[0])
     for transform in tf.transforms:
         transform.stamp_ns = first
     # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
-    info_payloads = ((layout.LEFT_INFO, infos[0].encode()), (layout.RIGHT_INFO, infos[1].encode()))
+    info_payloads = tuple((view.info_topic, info.encode()) for view, info in zip(views, infos, strict=True))
     workers = max(1, options.workers)
     try:
         with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
@@ -181,13 +195,13 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
             series_writer = _SeriesWriter(writer, series, SERIES_BATCH)
             encoded = ordered_map(pool, encode, frames, window=4 * workers)
             with tqdm(total=len(frame_ns), desc=f"convert {name}", unit="frame", disable=not options.progress) as bar:
-                for k, (left_payload, right_payload) in enumerate(encoded):
+                for k, payloads in enumerate(encoded):
                     stamp = int(frame_ns[k])
                     series_writer.write_until(stamp)
                     for topic, payload in info_payloads:
                         writer.write_payload(topic, CameraInfo.msgtype, stamp, restamped(payload, stamp))
-                    writer.write_payload(layout.LEFT_IMAGE, CompressedImage.msgtype, stamp, left_payload)
-                    writer.write_payload(layout.RIGHT_IMAGE, CompressedImage.msgtype, stamp, right_payload)
+                    for view, payload in zip(views, payloads, strict=True):
+                        writer.write_payload(view.image_topic, view.image_msgtype, stamp, payload)
                     bar.update()
             series_writer.write_until(None)
     except OSError as exc:  # the writer's own file operations carry no name, or the temporary's

@@ -64,6 +64,18 @@ def info_text(path: str | Path) -> str:
             )
         except VisionForceError as exc:
             unreadable.append(exc.problem if hasattr(exc, "problem") else str(exc))
+    for topic, name in ((layout.DEPTH_INFO, "depth camera"), (layout.COLOR_INFO, "colour camera")):
+        if rec.has(topic):
+            try:
+                cam = rec.depth_camera if topic == layout.DEPTH_INFO else rec.color_camera
+                lines.append(f"{name}: {cam.width}x{cam.height}, fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} "
+                             f"cy {cam.cy:.1f} px")
+            except VisionForceError as exc:
+                unreadable.append(exc.problem if hasattr(exc, "problem") else str(exc))
+    if rec.is_rgbd:
+        registered = rec.metadata.extra.get("depth_color_registered")
+        known = "known" if registered == "true" else "unknown"
+        lines.append("layout: RGB-D" + ("" if registered is None else f" (depth-to-colour transform {known})"))
     if rec.has(layout.LEFT_INFO):
         try:
             stereo = rec.stereo
@@ -100,7 +112,8 @@ def check_file(path: str | Path) -> list[str]:
         if channel.schema_encoding != layout.SCHEMA_ENCODING:
             problems.append(f"{channel.topic}: schema encoding '{channel.schema_encoding}', expected ros2msg")
     is_recording = layout.RECORDING_METADATA in rec.metadata_records
-    expected = layout.RECORDING_TOPICS if is_recording else layout.DERIVED_TOPICS
+    rgbd = is_recording and rec.is_rgbd
+    expected = (layout.RGBD_TOPICS if rgbd else layout.RECORDING_TOPICS) if is_recording else layout.DERIVED_TOPICS
     if not is_recording and layout.DERIVED_METADATA not in rec.metadata_records:
         problems.append(f"no '{layout.RECORDING_METADATA}' or '{layout.DERIVED_METADATA}' metadata record")
     for topic, info in rec.topics.items():
@@ -109,7 +122,7 @@ def check_file(path: str | Path) -> list[str]:
         elif info.msgtype != expected[topic]:
             problems.append(f"{topic}: type {info.msgtype}, expected {expected[topic]}")
     if is_recording:
-        for topic in layout.REQUIRED_TOPICS:
+        for topic in layout.RGBD_REQUIRED_TOPICS if rgbd else layout.REQUIRED_TOPICS:
             if not rec.has(topic):
                 problems.append(f"{topic}: missing")
     for topic, info in rec.topics.items():
@@ -120,13 +133,17 @@ def check_file(path: str | Path) -> list[str]:
         left, right = rec.log_times_ns(layout.LEFT_IMAGE), rec.log_times_ns(layout.RIGHT_IMAGE)
         if not np.array_equal(left, right):
             problems.append(f"left ({len(left)}) and right ({len(right)}) image stamps do not pair one to one")
-        if rec.has(layout.WRENCH):
-            stats = sync_stats(left, rec.force.times_ns)
-            if stats.frames_without_force:
-                problems.append(
-                    f"{stats.frames_without_force} frame(s) have no force sample within "
-                    f"{FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms"
-                )
+    if rgbd and rec.has(layout.COLOR_IMAGE):
+        depth, color = rec.log_times_ns(layout.DEPTH_IMAGE), rec.log_times_ns(layout.COLOR_IMAGE)
+        if not np.array_equal(depth, color):
+            problems.append(f"depth ({len(depth)}) and colour ({len(color)}) image stamps do not pair one to one")
+    if is_recording and rec.num_frames and rec.has(layout.WRENCH):
+        stats = sync_stats(rec.frame_times_ns, rec.force.times_ns)
+        if stats.frames_without_force:
+            problems.append(
+                f"{stats.frames_without_force} frame(s) have no force sample within "
+                f"{FORCE_GAP_TOLERANCE_NS / 1e6:.0f} ms"
+            )
     return problems
 
 

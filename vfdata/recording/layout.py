@@ -31,6 +31,25 @@ RECORDING_TOPICS: dict[str, str] = {
 }
 REQUIRED_TOPICS = (LEFT_IMAGE, RIGHT_IMAGE, LEFT_INFO, RIGHT_INFO, WRENCH, TF_STATIC)
 
+# RGB-D recordings (a colour and a depth camera instead of a stereo pair), named as realsense-ros
+# names them. The depth image is 16UC1 in millimetres (REP 118, 0 = no depth); the colour view is
+# optional (a depth camera alone, or a colour crop that cannot be registered to the depth).
+COLOR_IMAGE = "/camera/color/image/compressed"
+COLOR_INFO = "/camera/color/camera_info"
+DEPTH_IMAGE = "/camera/depth/image"
+DEPTH_INFO = "/camera/depth/camera_info"
+
+RGBD_TOPICS: dict[str, str] = {
+    COLOR_IMAGE: "sensor_msgs/msg/CompressedImage",
+    COLOR_INFO: "sensor_msgs/msg/CameraInfo",
+    DEPTH_IMAGE: "sensor_msgs/msg/Image",
+    DEPTH_INFO: "sensor_msgs/msg/CameraInfo",
+    WRENCH: "geometry_msgs/msg/WrenchStamped",
+    ECM_POSE: "geometry_msgs/msg/PoseStamped",
+    TF_STATIC: "tf2_msgs/msg/TFMessage",
+}
+RGBD_REQUIRED_TOPICS = (DEPTH_IMAGE, DEPTH_INFO, WRENCH, TF_STATIC)
+
 # Derived topics (written by later stages into separate files beside the recording).
 TISSUE_MASK = "/tissue/mask"
 TISSUE_DEPTH = "/tissue/depth"
@@ -53,6 +72,8 @@ LEFT_FRAME = "stereo_left_optical"
 RIGHT_FRAME = "stereo_right_optical"
 SENSOR_FRAME = "force_sensor"
 OBJECT_FRAME = "tissue_object"
+COLOR_FRAME = "camera_color_optical_frame"
+DEPTH_FRAME = "camera_depth_optical_frame"
 
 RECORDING_METADATA = "visionforce.recording"
 DERIVED_METADATA = "visionforce.derived"
@@ -64,6 +85,8 @@ UNITS = {
     "ecm_pose": "m, camera pose in the world frame",
     "camera_info.p": "pixels; right P[0,3] = -fx * baseline in m (ROS)",
 }
+RGBD_UNITS = {**{k: v for k, v in UNITS.items() if k != "camera_info.p"},
+              "depth_image": "16UC1, mm (REP 118), 0 = no depth", "camera_info.p": "pixels (ROS)"}
 
 
 @dataclass

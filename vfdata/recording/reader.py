@@ -201,7 +201,54 @@ class Recording:
 
     @property
     def camera(self) -> PinholeCamera:
-        return self.stereo.left
+        """The camera the frames' depth and clouds are in: the left rectified view, or an RGB-D
+        recording's depth camera."""
+        return self.depth_camera if self.is_rgbd else self.stereo.left
+
+    # -- RGB-D -----------------------------------------------------------------------------------
+    @cached_property
+    def is_rgbd(self) -> bool:
+        """An RGB-D recording: a depth image topic and no stereo pair (docs/format.md)."""
+        return self.has(layout.DEPTH_IMAGE) and not self.has(layout.LEFT_IMAGE)
+
+    def _info_camera(self, topic: str) -> PinholeCamera:
+        info = self.message(topic, 0)
+        p = np.asarray(info.p).reshape(3, 4)
+        if p[0, 0] <= 0 or p[1, 1] <= 0:
+            raise FormatError(self.path, f"{topic}: P has no focal length")
+        return PinholeCamera(p[0, 0], p[1, 1], p[0, 2], p[1, 2], int(info.width), int(info.height))
+
+    @cached_property
+    def depth_camera(self) -> PinholeCamera:
+        """The depth camera of an RGB-D recording (its CameraInfo's P)."""
+        return self._info_camera(layout.DEPTH_INFO)
+
+    @cached_property
+    def color_camera(self) -> PinholeCamera:
+        return self._info_camera(layout.COLOR_INFO)
+
+    def depth_mm(self, i: int) -> np.ndarray:
+        """Depth frame i of an RGB-D recording: (H, W) float32 mm, NaN where unknown."""
+        if not 0 <= i < self.num_frames:
+            raise IndexError(f"frame {i} out of range 0..{self.num_frames - 1}")
+        image = self.message(layout.DEPTH_IMAGE, i)
+        if image.encoding not in ("16UC1", "mono16") or image.step < 2 * image.width \
+                or len(image.data) < image.step * image.height:
+            raise FormatError(self.path, f"{layout.DEPTH_IMAGE}: message {i} is not a 16UC1 depth image "
+                                         f"({image.encoding}, {image.width}x{image.height}, step {image.step})")
+        data = np.frombuffer(image.data, dtype=">u2" if image.is_bigendian else "<u2", count=image.step // 2
+                             * image.height).reshape(image.height, image.step // 2)[:, :image.width]
+        depth = data.astype(np.float32)
+        depth[data == 0] = np.nan
+        return depth
+
+    def color_image(self, i: int) -> np.ndarray:
+        """Colour frame i of an RGB-D recording (BGR uint8), the one stamped like depth frame i."""
+        times = self.log_times_ns(layout.COLOR_IMAGE)
+        pos = int(np.searchsorted(times, self.frame_times_ns[i]))
+        if pos >= len(times) or times[pos] != self.frame_times_ns[i]:
+            raise FormatError(self.path, f"frame {i}: no colour image stamped like its depth image")
+        return self._decode_image(self.message(layout.COLOR_IMAGE, pos), i)
 
     @cached_property
     def is_rectified(self) -> bool:
@@ -235,13 +282,18 @@ class Recording:
                            cv2.remap(frame.right, r1, r2, cv2.INTER_LINEAR))
 
     # -- frames ----------------------------------------------------------------------------------
+    @property
+    def frame_topic(self) -> str:
+        """The topic whose messages are the frames: the left image, or an RGB-D recording's depth."""
+        return layout.DEPTH_IMAGE if self.is_rgbd else layout.LEFT_IMAGE
+
     @cached_property
     def frame_times_ns(self) -> np.ndarray:
-        return self.log_times_ns(layout.LEFT_IMAGE)
+        return self.log_times_ns(self.frame_topic)
 
     @property
     def num_frames(self) -> int:
-        return len(self.frame_times_ns) if self.has(layout.LEFT_IMAGE) else 0
+        return len(self.frame_times_ns) if self.has(self.frame_topic) else 0
 
     @cached_property
     def _right_index(self) -> np.ndarray:
