@@ -133,3 +133,29 @@ def test_load_errors(tmp_path):
     torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
     with pytest.raises(InputError, match="not a ForceRegressor checkpoint"):
         ForceRegressor.load(tmp_path / "other.ckpt")
+
+
+@pytest.mark.parametrize("turns", [1, 4])
+def test_symmetry_views_make_predictions_equivariant(turns):
+    # Averaging over a group of views makes any network equivariant under that group: the mirror across
+    # XZ (and the quarter turns about Z) of the tokens gives the same map of the forces.
+    from vfmodels.regressor import symmetry_views
+
+    torch.manual_seed(0)
+    model = SetTransformerLSTM(in_features=6, dim=16, heads=2, inducing_points=4, isab_blocks=1, lstm_hidden=8)
+    reg = ForceRegressor(model, symmetry_turns=turns).eval()
+    plain = ForceRegressor(model).eval()
+    x = torch.randn(2, 5, 12, 6)
+    with torch.no_grad():
+        base = reg({"tokens": x})
+        for view in symmetry_views(turns):
+            turned = reg({"tokens": (x.unflatten(-1, (-1, 3)) @ view.T).flatten(-2)})
+            torch.testing.assert_close(turned, base @ view.T, atol=1e-5, rtol=1e-4)
+        # Not so without the views: the network alone is not equivariant.
+        mirror = symmetry_views(1)[1]
+        assert not torch.allclose(plain({"tokens": (x.unflatten(-1, (-1, 3)) @ mirror.T).flatten(-2)}),
+                                  plain({"tokens": x}) @ mirror.T, atol=1e-3)
+    reg.train()
+    assert reg({"tokens": x}).shape == (2, 5, 3)  # training sees one view
+    with pytest.raises(ValueError):
+        ForceRegressor(model, symmetry_turns=-1)

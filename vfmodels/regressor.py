@@ -42,10 +42,19 @@ class ForceRegressor(L.LightningModule):
     checkpoint and restored with it. Without statistics the inputs and forces pass unchanged.
 
     `compile_model=True` runs the model through `torch.compile` (state-dict keys are unchanged).
+
+    `symmetry_turns=n` (n >= 1; 0 = off) averages every prediction outside training over the tube's
+    symmetries: n turns about the object's Z axis (360/n degrees apart), each with its mirror across
+    the XZ plane, 2n views in all; each view's tokens are turned, and its forces turned back. Only for
+    token inputs made of 3-vectors in the object frame (`frame: object`); the mirror alone (n = 1) is
+    exact for a tube hanging under gravity, the turns need a model trained with `rotate_augment`.
     """
 
-    def __init__(self, model: nn.Module, lr: float = 5e-4, weight_decay: float = 1e-3, compile_model: bool = False):
+    def __init__(self, model: nn.Module, lr: float = 5e-4, weight_decay: float = 1e-3, compile_model: bool = False,
+                 symmetry_turns: int = 0):
         super().__init__()
+        if symmetry_turns < 0 or (symmetry_turns and getattr(model, "input_key", "tokens") != "tokens"):
+            raise ValueError(f"symmetry_turns={symmetry_turns}: a number of turns >= 0, and only for token inputs")
         self.save_hyperparameters(ignore=["model"])
         self.model = model
         for name in STAT_NAMES:
@@ -109,9 +118,17 @@ class ForceRegressor(L.LightningModule):
     # ---- forward and loss ----------------------------------------------------------------------
 
     def forward(self, batch: dict[str, Any]) -> torch.Tensor:
-        """Normalised force predictions (B, T, 3)."""
+        """Normalised force predictions (B, T, 3); outside training averaged over the symmetry views."""
         model = self._compiled if self._compiled is not None else self.model
-        return model(self.normalise_input(batch[self.model.input_key]), batch.get("valid"))
+        x, valid = batch[self.model.input_key], batch.get("valid")
+        turns = self.hparams.get("symmetry_turns", 0)
+        if self.training or not turns:
+            return model(self.normalise_input(x), valid)
+        force_n = torch.zeros(*x.shape[:2], 3, device=x.device)
+        for view in symmetry_views(turns, device=x.device):
+            turned = (x.float().unflatten(-1, (-1, 3)) @ view.T).flatten(-2)
+            force_n += self.denormalise_force(model(self.normalise_input(turned), valid)) @ view
+        return self.normalise_force(force_n / (2 * turns))
 
     def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
         """Forces (B, T, 3) in N."""
@@ -258,6 +275,17 @@ class ForceRegressor(L.LightningModule):
             raise InputError(path, f"the checkpoint's weights do not fit its model ({str(exc).splitlines()[0]})") \
                 from None
         return regressor.eval()
+
+
+def symmetry_views(turns: int, device: torch.device | str = "cpu") -> list[torch.Tensor]:
+    """The 2 * `turns` (3, 3) orthogonal maps of the object frame that the tube is (nearly) symmetric
+    under: turns about Z by 360/`turns` degrees, each without and with the mirror across XZ (y negated)."""
+    views = []
+    for k in range(turns):
+        c, s = np.cos(2 * np.pi * k / turns), np.sin(2 * np.pi * k / turns)
+        turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float32, device=device)
+        views += [turn, turn @ torch.diag(torch.tensor([1.0, -1.0, 1.0], device=device))]
+    return views
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
