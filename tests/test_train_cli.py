@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from clip_fixtures import single_thread  # noqa: E402, F401 - autouse fixture
 
 import train  # noqa: E402
+from vfdata.errors import InputError  # noqa: E402
 from vfmodels.train import best_checkpoint  # noqa: E402
 
 SYNTHETIC = [
@@ -129,3 +130,64 @@ def test_fast_dev_run_on_the_mini_preset(tmp_path):
     train.main(["fit", f"--config={ROOT / 'configs' / 'proposed.yaml'}", f"--data.manifest={manifest}",
                 "--data.cache_dir=null", f"--trainer.default_root_dir={tmp_path / 'run'}",
                 "--trainer.fast_dev_run=true", "--trainer.enable_progress_bar=false", "--trainer.accelerator=cpu"])
+
+
+class _RunsCode:
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+        return (os.system, (f"touch {self.marker}",))
+
+
+def _bad_checkpoints(tmp_path: Path) -> dict[str, str]:
+    """Checkpoint files that must end `train.py test` in one line naming them (file name -> problem)."""
+    marker = tmp_path / "ran"
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    (tmp_path / "text.ckpt").write_text("hello")
+    good = {"state_dict": {"w": torch.zeros(3)}, "hyper_parameters": {"lr": 1e-3}}
+    torch.save(good, tmp_path / "whole.ckpt")
+    (tmp_path / "truncated.ckpt").write_bytes((tmp_path / "whole.ckpt").read_bytes()[:300])
+    torch.save({"state_dict": {"w": _RunsCode(marker)}}, tmp_path / "pickled_code.ckpt")
+    torch.save({"state_dict": {}, "hyper_parameters": {"model": {"class_path": "subprocess.Popen",
+                "init_args": {"args": f"touch {marker}", "shell": True}}}}, tmp_path / "hparams_class.ckpt")
+    torch.save({"state_dict": {}, "hyper_parameters": {"_class_path": "subprocess.getoutput",
+                "cmd": f"touch {marker}"}}, tmp_path / "hparams_class_path.ckpt")
+    torch.save([1, 2, 3], tmp_path / "list.ckpt")
+    return {"missing.ckpt": "checkpoint not found", "empty.ckpt": "not a readable checkpoint",
+            "text.ckpt": "not a readable checkpoint", "truncated.ckpt": "not a readable checkpoint",
+            "pickled_code.ckpt": "holds pickled code (posix.system)", "hparams_class.ckpt": "'model'",
+            "hparams_class_path.ckpt": "'_class_path'", "list.ckpt": "not a checkpoint"}
+
+
+def test_bad_checkpoints_are_one_line_errors_and_run_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["train.py"])  # as from a shell: Lightning warns about pytest's own argv
+    for name, problem in _bad_checkpoints(tmp_path).items():
+        with pytest.raises(SystemExit) as exit_info:
+            train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'run'}",
+                        f"--ckpt_path={tmp_path / name}"])
+        err = capsys.readouterr().err.strip()
+        assert exit_info.value.code == 1, name
+        assert err.startswith(f"train.py: error: {tmp_path / name}: ") and problem in err, err
+        assert "\n" not in err and "Traceback" not in err, err
+    assert not (tmp_path / "ran").exists()
+
+
+def test_missing_and_malformed_manifests_are_one_line_errors(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    (tmp_path / "bad.yaml").write_text("entries: [")
+    for manifest, problem in ((tmp_path / "none.yaml", "dataset manifest not found"),
+                              (tmp_path / "bad.yaml", "not a valid YAML manifest")):
+        with pytest.raises(SystemExit) as exit_info:
+            train.main(["fit", f"--config={ROOT / 'configs' / 'visionforce.yaml'}", f"--data.manifest={manifest}",
+                        "--trainer.accelerator=cpu", f"--trainer.default_root_dir={tmp_path / 'run'}"])
+        err = capsys.readouterr().err.strip()
+        assert exit_info.value.code == 1
+        assert err.startswith(f"train.py: error: {manifest}: {problem}") and "\n" not in err, err
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    with pytest.raises(InputError):
+        train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}",
+                    f"--ckpt_path={tmp_path / 'missing.ckpt'}", "--debug"])

@@ -68,6 +68,31 @@ def adopt_normalisation(model: ForceRegressor, datamodule: LightningDataModule) 
         model.set_normalisation(**stats)
 
 
+# What ForceRegressor saves as hyper_parameters (plain values); Lightning's CLI parses a checkpoint's
+# hyper_parameters into the model's config, so anything else (a class_path) could choose code to build.
+_REGRESSOR_HPARAMS = {"lr", "weight_decay", "compile_model", "_instantiator"}
+
+
+def check_checkpoint(ckpt_path: str | Path | None) -> None:
+    """An InputError naming a checkpoint file that is missing, damaged, holds pickled code, is not a
+    checkpoint or whose hyper_parameters name anything but ForceRegressor's plain arguments, before
+    Lightning reads it (its errors are tracebacks). Lightning's own names ("last", "hpc", "registry...")
+    are left to it; "best" is resolved to a file before this."""
+    if ckpt_path is None or str(ckpt_path) in ("last", "hpc") or str(ckpt_path).startswith("registry"):
+        return
+    checkpoint = read_checkpoint(ckpt_path)
+    if not isinstance(checkpoint.get("state_dict"), dict):
+        raise InputError(ckpt_path, "not a Lightning checkpoint (no 'state_dict'): pass a checkpoint train.py wrote")
+    hparams = checkpoint.get("hyper_parameters", {})
+    if not isinstance(hparams, dict):
+        raise InputError(ckpt_path, "the checkpoint's hyper_parameters are not a mapping")
+    foreign = sorted(str(k) for k, v in hparams.items()
+                     if k not in _REGRESSOR_HPARAMS or not isinstance(v, (bool, int, float, str)))
+    if foreign:
+        raise InputError(ckpt_path, f"the checkpoint's hyper_parameters hold {foreign}, which are not ForceRegressor's "
+                                    "plain arguments (lr, weight_decay, compile_model); refusing to build from them")
+
+
 class ForceCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         parser.description = DESCRIPTION
@@ -101,15 +126,28 @@ class ForceCLI(LightningCLI):
                  "init_args": {"save_dir": root, "name": "tb"}},
             ]
 
-    def _resolve_best(self) -> None:
+    def _resolve_checkpoint(self) -> None:
         kwargs = self.config_init[self.subcommand]
         callback = self.trainer.checkpoint_callback
         if kwargs.get("ckpt_path") == "best" and callback is not None and not callback.best_model_path:
             kwargs["ckpt_path"] = str(best_checkpoint(callback.dirpath))
+        check_checkpoint(kwargs.get("ckpt_path"))
+        # Lightning's own load then reads tensors only too, whatever torch's default (pyproject: torch>=2.4).
+        kwargs["weights_only"] = True
 
-    before_validate = before_test = before_predict = _resolve_best
+    def _parse_ckpt_path(self) -> None:
+        # Lightning reads the checkpoint here, before any hook, to merge its hyper_parameters into the config.
+        subcommand = self.config.get("subcommand")
+        if subcommand:
+            ckpt_path = self.config[subcommand].get("ckpt_path")
+            if ckpt_path and ckpt_path != "best":
+                check_checkpoint(ckpt_path)
+        super()._parse_ckpt_path()
+
+    before_validate = before_test = before_predict = _resolve_checkpoint
 
     def before_fit(self) -> None:
+        self._resolve_checkpoint()
         adopt_normalisation(self.model, self.datamodule)
 
 
@@ -118,9 +156,38 @@ def make_cli(args: list[str] | None = None, run: bool = True) -> ForceCLI:
                     save_config_kwargs={"overwrite": True}, args=args, run=run)
 
 
+def _named_error(exc: BaseException) -> VisionForceError | None:
+    """Our error behind `exc`: jsonargparse wraps what a class's __init__ raises (a missing manifest) in
+    ValueErrors of its own, several levels deep."""
+    seen: set[int] = set()
+    pending = [exc]
+    while pending:
+        current = pending.pop()
+        if current is None or id(current) in seen:
+            continue
+        seen.add(id(current))
+        if isinstance(current, VisionForceError):
+            return current
+        pending += [current.__cause__, current.__context__]
+    return None
+
+
 def main(args: list[str] | None = None) -> None:
+    """The CLI; every failure ends in one line on stderr and exit 1 (`--debug`: the traceback)."""
+    # Lightning warns when args are given as well as sys.argv: strip --debug from the one in use.
+    given = sys.argv if args is None else args
+    debug = "--debug" in given
+    given[:] = [a for a in given if a != "--debug"]
     try:
         make_cli(args)
-    except VisionForceError as exc:
-        print(f"train.py: error: {exc}", file=sys.stderr)
+    except Exception as exc:
+        if debug:
+            raise
+        named = _named_error(exc)
+        if named is not None:
+            print(f"train.py: error: {named}", file=sys.stderr)
+        else:  # a bug or an environment problem, not bad input: one line, and the way to learn more
+            text = (str(exc).strip().splitlines() or [""])[0]
+            print(f"train.py: error: {type(exc).__name__}: {text} (run `python train.py --debug ...` for the "
+                  "traceback)", file=sys.stderr)
         sys.exit(1)
