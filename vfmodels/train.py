@@ -16,6 +16,7 @@ See docs/models.md (configs, ablations, baselines, multi-GPU/multi-node).
 
 from __future__ import annotations
 
+import inspect
 import sys
 from pathlib import Path
 
@@ -68,9 +69,11 @@ def adopt_normalisation(model: ForceRegressor, datamodule: LightningDataModule) 
         model.set_normalisation(**stats)
 
 
-# What ForceRegressor saves as hyper_parameters (plain values); Lightning's CLI parses a checkpoint's
-# hyper_parameters into the model's config, so anything else (a class_path) could choose code to build.
-_REGRESSOR_HPARAMS = {"lr", "weight_decay", "compile_model", "_instantiator"}
+def _regressor_hparams() -> set[str]:
+    """What ForceRegressor saves as hyper_parameters: its plain arguments. Lightning's CLI parses a
+    checkpoint's hyper_parameters into the model's config, so anything else (a class_path) could choose
+    code to build."""
+    return (set(inspect.signature(ForceRegressor.__init__).parameters) - {"self", "model"}) | {"_instantiator"}
 
 
 def check_checkpoint(ckpt_path: str | Path | None) -> None:
@@ -86,11 +89,13 @@ def check_checkpoint(ckpt_path: str | Path | None) -> None:
     hparams = checkpoint.get("hyper_parameters", {})
     if not isinstance(hparams, dict):
         raise InputError(ckpt_path, "the checkpoint's hyper_parameters are not a mapping")
+    allowed = _regressor_hparams()
     foreign = sorted(str(k) for k, v in hparams.items()
-                     if k not in _REGRESSOR_HPARAMS or not isinstance(v, (bool, int, float, str)))
+                     if k not in allowed or not isinstance(v, (bool, int, float, str, type(None))))
     if foreign:
         raise InputError(ckpt_path, f"the checkpoint's hyper_parameters hold {foreign}, which are not ForceRegressor's "
-                                    "plain arguments (lr, weight_decay, compile_model); refusing to build from them")
+                                    f"plain arguments ({', '.join(sorted(allowed - {'_instantiator'}))}); refusing to "
+                                    "build from them")
 
 
 class ForceCLI(LightningCLI):
