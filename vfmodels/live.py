@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ import torch
 from vfdata.calibration import PinholeCamera
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
-from vfdata.engine import EngineOptions, FrameEngine, ImageStages
+from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfmodels.predict import CLIP_FRAMES, load_force_model
@@ -123,6 +124,8 @@ class StreamingForceEstimator:
         self.options, self.window, self.pipelined = options or EngineOptions(), window, pipelined
         self._pool: ThreadPoolExecutor | None = None
         self._finished_clock = None
+        # Called with each tracked frame's FrameResult before its force is estimated (the live view).
+        self.on_frame: Callable[[FrameResult], None] | None = None
         self._reset()
 
     def _reset(self) -> None:
@@ -140,6 +143,8 @@ class StreamingForceEstimator:
         result = self.engine.track(self.engine.frames, stamp_ns, left, images)
         if self.engine.offline_tracker:
             raise VisionForceError(f"tracker '{self.options.tracker}' is offline (whole clip): not for streaming")
+        if self.on_frame is not None:
+            self.on_frame(result)
         if self.model is None:
             self.model = StreamingForceModel(self.regressor, self.spec, self.frame.rotation, self.frame.origin,
                                              self.window)

@@ -19,6 +19,7 @@ RIGHT_INFO = "/stereo/right/camera_info"
 WRENCH = "/force_sensor/wrench"
 ECM_POSE = "/ecm/measured_cp"
 TF_STATIC = "/tf_static"
+TF = "/tf"  # the live view's object frame, sent with every frame (a late client misses /tf_static)
 
 RECORDING_TOPICS: dict[str, str] = {
     LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",

@@ -1,0 +1,232 @@
+"""`vfdata live`: a replayed recording served over the Foxglove WebSocket protocol, read by a client of
+the protocol (the `websockets` package), against offline `predict` on the same recording and
+checkpoint; the --record file; a clean stop; the errors a user can hit."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import socket
+import struct
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove", reason="the live extra (foxglove-sdk) is not installed")
+websockets = pytest.importorskip("websockets")
+
+from test_predict import _regressor, _save_checkpoint  # noqa: E402
+
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder  # noqa: E402
+from vfdata.errors import InputError, OutputError, OutputExistsError  # noqa: E402
+from vfdata.foxglove_server import LIVE_TOPICS, FoxgloveServer  # noqa: E402
+from vfdata.recording import Recording, layout  # noqa: E402
+from vfdata.recording.derived import DerivedRecording, read_force_estimate  # noqa: E402
+from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
+from vfdata.sim import synthesize  # noqa: E402
+from vfmodels import predict  # noqa: E402
+from vfmodels.commands import live  # noqa: E402
+
+FRAMES = 8
+SUBPROTOCOL = "foxglove.sdk.v1"
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sim")
+    synthesize("mini", root, seed=3, frames=FRAMES, workers=1, progress=False)
+    return convert_raw_folder(root / "mini_002", root / "mini_002.mcap", options=ConvertOptions(progress=False))
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory) -> Path:
+    return _save_checkpoint(_regressor(), tmp_path_factory.mktemp("ckpt") / "m.ckpt",
+                            {"spec": {"input": "tracks", "fps": 30.0}})
+
+
+def _args(source, ckpt, **extra) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    live.register(parser.add_subparsers())
+    argv = ["live", str(source), "--ckpt", str(ckpt), "--port", "0", "--window", "8", "--quiet"]
+    for key, value in extra.items():
+        flag = "--" + key.replace("_", "-")
+        argv += [flag] if value is True else [flag, str(value)]
+    return parser.parse_args(argv)
+
+
+class Client:
+    """A Foxglove WebSocket client in a thread: subscribes to `topics`, keeps (topic, log time,
+    payload) of every message until the server closes the connection."""
+
+    def __init__(self, url: str, topics: tuple[str, ...], on_message=None):
+        self.url, self.topics, self.on_message = url, topics, on_message
+        self.messages: list[tuple[str, int, bytes]] = []
+        self.advertised: dict[str, dict] = {}
+        self.closed_cleanly = False
+        self.thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+        self.thread.start()
+
+    async def _run(self) -> None:
+        subscriptions: dict[int, str] = {}
+        async with websockets.connect(self.url, subprotocols=[SUBPROTOCOL]) as ws:
+            assert ws.subprotocol == SUBPROTOCOL
+            try:
+                async for message in ws:
+                    if isinstance(message, str):
+                        op = json.loads(message)
+                        if op["op"] == "advertise":
+                            wanted = []
+                            for channel in op["channels"]:
+                                self.advertised[channel["topic"]] = channel
+                                if channel["topic"] in self.topics:
+                                    subscriptions[len(subscriptions) + 1] = channel["topic"]
+                                    wanted.append({"id": len(subscriptions), "channelId": channel["id"]})
+                            await ws.send(json.dumps({"op": "subscribe", "subscriptions": wanted}))
+                    elif message[0] == 1:  # message data: opcode, subscription id, log time, payload
+                        sub, log_time = struct.unpack_from("<IQ", message, 1)
+                        self.messages.append((subscriptions[sub], log_time, bytes(message[13:])))
+                        if self.on_message is not None:
+                            self.on_message()
+                self.closed_cleanly = True
+            except websockets.ConnectionClosedOK:
+                self.closed_cleanly = True
+
+    def of(self, topic: str) -> list[tuple[int, bytes]]:
+        return [(t, p) for name, t, p in self.messages if name == topic]
+
+
+def _serve(args, topics) -> tuple[int, Client]:
+    clients = []
+    code = live.run(args, ready=lambda server: clients.append(Client(server.url(), topics)))
+    clients[0].thread.join(timeout=10)
+    assert not clients[0].thread.is_alive()
+    return code, clients[0]
+
+
+def _port_is_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_path):
+    cv2.setRNGSeed(0)  # the colortrack mask (GrabCut) draws from OpenCV's RNG: the same seed for both runs
+    offline = predict.predict_recording(recording, ckpt, tmp_path / "offline", window=8, video=False, progress=False)
+    times, forces = read_force_estimate(offline.force_mcap)
+
+    cv2.setRNGSeed(0)
+    record = tmp_path / "live.mcap"
+    args = _args(recording, ckpt, record=record, wait_for_client=20, speed=1.0)
+    code, client = _serve(args, (layout.FORCE_ESTIMATE, layout.TRACKING_POINTS))
+    assert code == 0 and client.closed_cleanly
+    channel = client.advertised[layout.FORCE_ESTIMATE]
+    assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == \
+        ("cdr", "geometry_msgs/msg/WrenchStamped", "ros2msg")
+    assert set(client.advertised) == set(LIVE_TOPICS)
+
+    received = client.of(layout.FORCE_ESTIMATE)
+    assert len(received) == FRAMES
+    wrenches = [decode("geometry_msgs/msg/WrenchStamped", payload) for _, payload in received]
+    assert all(isinstance(w, WrenchStamped) and w.frame_id == layout.OBJECT_FRAME for w in wrenches)
+    np.testing.assert_array_equal([t for t, _ in received], times)
+    np.testing.assert_array_equal([w.stamp_ns for w in wrenches], times)
+    np.testing.assert_allclose(np.array([w.force for w in wrenches]), forces, rtol=1e-4, atol=1e-4)
+    assert len(client.of(layout.TRACKING_POINTS)) == FRAMES
+    assert not client.of(layout.LEFT_IMAGE)  # not subscribed: not sent
+
+    # The recording holds everything served, in the files' layout, and reads as a force file.
+    rec_times, rec_forces = read_force_estimate(record)
+    np.testing.assert_array_equal(rec_times, times)
+    np.testing.assert_array_equal(rec_forces, np.array([w.force for w in wrenches]))
+    with Recording.open(record) as rec:
+        assert {t: info.count for t, info in rec.topics.items()} == dict.fromkeys(LIVE_TOPICS, FRAMES)
+        _, image = next(rec.messages(layout.LEFT_IMAGE))
+        _, info = next(rec.messages(layout.LEFT_INFO))
+        assert cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (
+            info.height, info.width)
+        with Recording.open(recording) as source:
+            np.testing.assert_allclose(np.asarray(info.k).reshape(3, 3), source.camera.K)
+    with DerivedRecording.open(record) as derived:
+        assert derived.meta.get("stage") == "live"
+        np.testing.assert_allclose(derived.object_frame.origin, read_tracks_origin(offline.processed), atol=1e-9)
+    assert not list(tmp_path.glob(".live.mcap*"))
+    assert _port_is_free(int(client.url.rsplit(":", 1)[1]))
+
+
+def read_tracks_origin(processed: Path) -> np.ndarray:
+    with DerivedRecording.open(processed) as derived:
+        return derived.object_frame.origin
+
+
+def test_a_stop_ends_the_session_cleanly_and_keeps_what_was_served(recording, ckpt, tmp_path):
+    stop = threading.Event()
+    args = _args(recording, ckpt, record=tmp_path / "stopped.mcap", wait_for_client=20)
+    clients = []
+
+    def ready(server):  # stop once the client has the first force
+        clients.append(Client(server.url(), (layout.FORCE_ESTIMATE,), on_message=stop.set))
+
+    assert live.run(args, stop=stop, ready=ready) == 0
+    clients[0].thread.join(timeout=10)
+    assert clients[0].closed_cleanly
+    served = clients[0].of(layout.FORCE_ESTIMATE)
+    assert 0 < len(served) < FRAMES
+    assert len(read_force_estimate(tmp_path / "stopped.mcap")[0]) == len(served)
+    assert not [t for t in threading.enumerate() if t.name.startswith(("vf-replay", "vf-image"))]
+
+
+def test_live_errors_are_one_line_and_leave_nothing(recording, ckpt, tmp_path):
+    with pytest.raises(InputError, match="needs --calibration"):
+        live.run(_args("0", ckpt, prompt="box:1,2,3,4"))
+    with pytest.raises(InputError, match="--right, --side-by-side"):
+        live.run(_args(recording, ckpt, side_by_side=True))
+    with pytest.raises(InputError, match="recording not found"):
+        live.run(_args(tmp_path / "missing.mcap", ckpt))
+    existing = tmp_path / "kept.mcap"
+    existing.write_bytes(b"mine")
+    with pytest.raises(OutputExistsError):
+        live.run(_args(recording, ckpt, record=existing))
+    assert existing.read_bytes() == b"mine"
+    blocker = FoxgloveServer(port=0)
+    try:
+        with pytest.raises(OutputError, match="cannot serve"):
+            live.run(_args(recording, ckpt, record=tmp_path / "r.mcap", port=blocker.port))
+    finally:
+        blocker.close()
+    assert not list(tmp_path.glob("*r.mcap*"))
+
+
+def test_a_side_by_side_video_source_gives_rectified_pairs(recording, tmp_path):
+    from vfdata.sources import VideoStereo
+
+    with Recording.open(recording) as rec:
+        raw = Path(rec.metadata.source)
+        pairs = [rec.rectified_frame(i) for i in range(4)]
+    left = cv2.imread(str(raw / "left" / "000000.jpg"))
+    h, w = left.shape[:2]
+    video = tmp_path / "stereo.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (2 * w, h))
+    for i in range(4):
+        writer.write(np.hstack([cv2.imread(str(raw / side / f"{i:06d}.jpg")) for side in ("left", "right")]))
+    writer.release()
+    source = VideoStereo(str(video), None, raw / "calibration.yaml", side_by_side=True)
+    try:
+        frames = list(source)
+    finally:
+        source.close()
+    assert len(frames) + source.dropped == 4 and len(frames) >= 1
+    for frame in frames:  # the same rectified views as the recording's, up to the video's compression
+        expected = pairs[frame.index]
+        assert frame.left.shape == expected.left.shape and frame.right.shape == expected.right.shape
+        assert np.abs(frame.left.astype(int) - expected.left.astype(int)).mean() < 6
+    with pytest.raises(InputError, match="--side-by-side"):
+        VideoStereo(str(video), None, raw / "calibration.yaml")
+    with pytest.raises(InputError, match="cannot be opened"):
+        VideoStereo(str(tmp_path / "none.avi"), None, raw / "calibration.yaml", side_by_side=True)

@@ -1,0 +1,136 @@
+"""A live session (`vfdata live`): a stereo source (`vfdata.sources`) through the streaming estimator
+(`vfmodels.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
+
+Per tracked frame it serves the left image (`/stereo/left/image/compressed`, JPEG, with its rectified
+`/stereo/left/camera_info`), `/tissue/mask`, `/tissue/points` and `/tracking/points` (object frame, m),
+the object frame on `/tf`, and the force of each frame on `/force/estimate` as soon as it is known
+(one frame later: its velocity is a central difference; two with `pipelined`). The force goes first,
+the pictures after it, so drawing them never delays a force.
+
+Latency is measured from the arrival of the frame the estimate waited for (the one after the
+estimate's own frame: the velocity's) to the moment its force was sent; `LiveStats` keeps them."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from vfdata.engine import FrameResult
+from vfdata.foxglove_server import FoxgloveServer
+from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recording import layout
+from vfdata.recording.derived import DERIVED_VERSION, cloud_message, mask_message, object_tf
+from vfdata.recording.messages import CompressedImage, WrenchStamped
+from vfdata.sources import LiveFrame, rectified_camera_info
+from vfmodels.live import ForceEstimate, StreamingForceEstimator
+
+JPEG_QUALITY = 85
+
+
+@dataclass
+class LiveStats:
+    """What a session did: frames in, estimates out, and the timing a client sees."""
+
+    frames: int = 0
+    estimates: int = 0
+    dropped: int = 0  # frames a camera delivered that the session never took (it was busy)
+    wall_s: float = 0.0  # first frame's arrival to the last estimate sent
+    latency_ms: list[float] = field(default_factory=list)  # per estimate with a next frame (see the module doc)
+    forces: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (stamp_ns, force N) as sent
+
+    @property
+    def rate_fps(self) -> float:
+        return self.estimates / self.wall_s if self.wall_s > 0 else 0.0
+
+    def summary(self) -> dict[str, float]:
+        lat = np.asarray(self.latency_ms) if self.latency_ms else np.full(1, np.nan)
+        return {"frames": self.frames, "estimates": self.estimates, "dropped": self.dropped,
+                "rate_fps": round(self.rate_fps, 2), "latency_median_ms": round(float(np.median(lat)), 1),
+                "latency_p95_ms": round(float(np.percentile(lat, 95)), 1)}
+
+
+class LiveSession:
+    """Connects a source, an estimator and a server (see the module docstring). `run()` returns when
+    the source ends, `max_frames` are in, or `stop` is set; the caller closes the server."""
+
+    def __init__(self, source, estimator: StreamingForceEstimator, server: FoxgloveServer,
+                 stop: threading.Event | None = None):
+        self.source, self.estimator, self.server = source, estimator, server
+        self.stop = stop or threading.Event()
+        self.stats = LiveStats()
+        self._tracked: list[FrameResult] = []
+        self.object_frame: ObjectFrame | None = None  # the stream's (the estimator forgets it at its flush)
+        self._arrivals: dict[int, float] = {}  # stamp -> arrival of the next frame (the velocity's)
+        self._last: LiveFrame | None = None
+        estimator.on_frame = self._on_frame
+
+    def _on_frame(self, result: FrameResult) -> None:
+        self.object_frame = self.estimator.frame
+        self._tracked.append(result)
+
+    def run(self) -> LiveStats:
+        first_arrival = None
+        try:
+            for frame in self.source:
+                if first_arrival is None:
+                    first_arrival = frame.arrival_s
+                if self._last is not None:
+                    self._arrivals[self._last.stamp_ns] = frame.arrival_s
+                self._last = frame
+                self.stats.frames += 1
+                estimate = self.estimator.push(frame.left, frame.right, frame.stamp_ns)
+                self._send(estimate)
+                if self.stop.is_set():
+                    break
+            for estimate in self.estimator.flush():
+                self._send(estimate)
+            self._send(None)  # the frames flush tracked
+        finally:
+            self.stats.dropped = int(getattr(self.source, "dropped", 0))
+            if first_arrival is not None:
+                self.stats.wall_s = time.perf_counter() - first_arrival
+        return self.stats
+
+    def _send(self, estimate: ForceEstimate | None) -> None:
+        if estimate is not None:
+            force = np.asarray(estimate.force_n, dtype=np.float64)
+            self.server.publish(layout.FORCE_ESTIMATE, WrenchStamped(
+                int(estimate.stamp_ns), layout.OBJECT_FRAME, tuple(float(f) for f in force), (0.0, 0.0, 0.0)))
+            sent = time.perf_counter()
+            arrival = self._arrivals.pop(int(estimate.stamp_ns), None)
+            if arrival is not None:
+                self.stats.latency_ms.append(1000.0 * (sent - arrival))
+            self.stats.estimates += 1
+            self.stats.forces.append((int(estimate.stamp_ns), force))
+        while self._tracked:
+            self._send_frame(self._tracked.pop(0))
+
+    def _send_frame(self, result: FrameResult) -> None:
+        server, stamp, frame = self.server, result.stamp_ns, self.object_frame
+        server.publish(layout.TF, object_tf(frame.rotation, frame.origin, stamp))
+        if server.wants(layout.LEFT_IMAGE):
+            ok, jpeg = cv2.imencode(".jpg", result.left, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            server.publish(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", jpeg.tobytes()))
+        server.publish(layout.LEFT_INFO, rectified_camera_info(self.estimator.camera, stamp))
+        if server.wants(layout.TISSUE_MASK):
+            server.publish(layout.TISSUE_MASK, mask_message(result.mask, stamp))
+        if server.wants(layout.TISSUE_POINTS):
+            server.publish(layout.TISSUE_POINTS, cloud_message(frame.to_object(result.cloud_mm), stamp))
+        if result.points_mm is not None and server.wants(layout.TRACKING_POINTS):
+            server.publish(layout.TRACKING_POINTS,
+                           cloud_message(frame.to_object(result.points_mm), stamp, result.visible))
+
+    def metadata(self) -> dict[str, str]:
+        """The `visionforce.derived` record of a recorded session (readable as a force file)."""
+        frame = self.object_frame
+        meta = {"stage": "live", "derived_version": str(DERIVED_VERSION), "torque_estimated": "false",
+                "live_stats": json.dumps(self.stats.summary())}
+        if frame is not None:
+            meta["object_frame"] = json.dumps(frame.to_dict())
+            meta["up_known"] = str(self.estimator.up is not None).lower()
+        return meta
