@@ -25,7 +25,8 @@ PRESS_MM_PER_FRAME = 0.8
 def depth_frame(i: int, size: int = DEPTH_SIZE) -> np.ndarray:
     """Depth (size, size) float mm of frame i: board plus dome, the dome's middle pressed in."""
     v, u = np.mgrid[0:size, 0:size].astype(np.float64)
-    board = BOARD_MM - TILT_MM_PER_PX * (v - size / 2)
+    # a plane is linear in inverse depth over the pixels: 1/z = 1/BOARD_MM + b (v - size/2)
+    board = 1.0 / (1.0 / BOARD_MM + TILT_MM_PER_PX / BOARD_MM ** 2 * (v - size / 2))
     r = np.hypot(u - DOME_CENTRE[0], v - DOME_CENTRE[1]) / DOME_RADIUS_PX
     dome = np.where(r < 1, DOME_MM * np.sqrt(np.clip(1 - r ** 2, 0, 1)), 0.0)
     press = PRESS_MM_PER_FRAME * i * np.exp(-(r * 3) ** 2)

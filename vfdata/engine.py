@@ -28,6 +28,7 @@ from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError
 from vfdata.recon import Prompt, estimate_object_frame, make_depth_estimator, make_segmenter, tissue_cloud
 from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view
+from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
 from vfdata.tracking.registry import FrameInputs, Tracker, make_tracker
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,14 @@ class EngineOptions:
     # disparity range unless depth_options give one. Without a floor, dark textureless background
     # matches at near-zero disparity (depth near infinity) and leaks into the tissue's edges.
     working_range_mm: tuple[float, float] = (40.0, 300.0)
+    # The frame tracks and clouds are written in: "tissue" (the tube's object frame, the paper's),
+    # "board" (a flat organ on a board: normal = up, docs/reconstruction.md) or "camera".
+    # "auto": tissue for stereo recordings, board for RGB-D ones (vfdata.processing).
+    object_frame: str = "auto"
+
+
+OBJECT_FRAMES = ("auto", "tissue", "board", "camera")
+SENSOR_DEPTH = "sensor"  # the depth an RGB-D camera recorded: no depth backend runs
 
 
 @dataclass
@@ -130,7 +139,10 @@ class FrameEngine:
         self.camera, self.baseline_mm, self.prompt = camera, float(baseline_mm), prompt
         self.prompt.check_inside(camera.width, camera.height)
         self.up, self.ground_truth = up, ground_truth
-        self.depth = make_depth_estimator(self.options.depth, **self._depth_options())
+        if self.options.object_frame not in OBJECT_FRAMES:
+            raise InputError("object frame", f"'{self.options.object_frame}' is not one of {', '.join(OBJECT_FRAMES)}")
+        self.depth = None if self.options.depth == SENSOR_DEPTH else make_depth_estimator(
+            self.options.depth, **self._depth_options())
         self.segmenter = make_segmenter(self.options.segment, **self._segment_options())
         self.clock = StageClock()
         self.frame: ObjectFrame | None = None
@@ -163,7 +175,9 @@ class FrameEngine:
     @property
     def parameters(self) -> dict:
         """The stages' names and settings, for provenance."""
-        return {"depth": self.depth.parameters(), "segment": getattr(self.segmenter, "parameters", dict)(),
+        depth = {"backend": SENSOR_DEPTH} if self.depth is None else self.depth.parameters()
+        return {"depth": depth, "object_frame": self.options.object_frame,
+                "segment": getattr(self.segmenter, "parameters", dict)(),
                 "tracker": {"name": self.options.tracker, "num_points": self.options.num_points,
                             "seed": self.options.seed, **self.options.tracker_options}}
 
@@ -210,8 +224,15 @@ class FrameEngine:
         if not first.mask.any() or len(first.cloud_mm) < MIN_FIRST_CLOUD:
             raise InputError("prompt", f"the tissue mask of the first frame is empty ({int(first.mask.sum())} "
                                        f"pixels, {len(first.cloud_mm)} points): check the prompt")
-        self.frame = estimate_object_frame(first.cloud_mm, self.up)
-        self.origin_cut = bool(origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
+        if self.options.object_frame == "board":
+            plane = getattr(self.segmenter, "plane", None) or fit_board_plane(first.depth_mm, first.mask)
+            self.frame = board_frame(plane, self.camera, first.cloud_mm)
+        elif self.options.object_frame == "camera":
+            self.frame = camera_frame()
+        else:
+            self.frame = estimate_object_frame(first.cloud_mm, self.up)
+        self.origin_cut = self.options.object_frame in ("auto", "tissue") and bool(
+            origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
         if self.origin_cut:
             log.warning("warning: the tissue runs out of the image at its wide end: the object frame's origin "
                         "(2nd percentile along Z) may be where the view cuts it, not at the clamp")
@@ -252,6 +273,16 @@ class FrameEngine:
             stamp_ns, left = pending.pop(0)
             yield self.track(index, stamp_ns, left, self.image_stages(left, None, index == 0, depth))
             index += 1
+
+    def run_depth(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Iterator[FrameResult]:
+        """(stamp_ns, image, depth_mm) frames of a depth camera -> one FrameResult each, in order: the
+        recorded depth replaces stereo matching; `image` (H, W, 3) BGR in the depth camera's pixels
+        feeds the segmenter and the image-based trackers."""
+        started = self.clock.now()
+        for index, (stamp_ns, image, depth_mm) in enumerate(frames):
+            self.clock.add("decode", started)
+            yield self.track(index, stamp_ns, image, self.image_stages(image, None, index == 0, depth_mm))
+            started = self.clock.now()
 
     def finish(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The tracks of an offline tracker over every frame seen ((F, N, 3) mm, (F, N)); None else."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.atomic import atomic_output, check_output
-from vfdata.engine import EngineOptions, FrameEngine
+from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt
 from vfdata.recon.object_frame import up_in_camera
@@ -116,6 +116,51 @@ def stereo_engine(rec: Recording, src: Path, options: EngineOptions, prompt: str
                        up=camera_up(rec), ground_truth=ground_truth)
 
 
+def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
+    """An RGB-D recording's stages: its recorded depth (no matching), the `plane` mask unless another
+    is asked for (the stereo default, colortrack, needs a colour view registered to the depth), and the
+    board frame unless the camera frame is asked for."""
+    if options.depth not in ("sgbm", SENSOR_DEPTH):
+        raise InputError(src, f"an RGB-D recording brings its depth: depth '{options.depth}' does not apply "
+                              f"(leave --depth out, or --depth {SENSOR_DEPTH})")
+    if options.object_frame == "tissue":
+        raise InputError(src, "the tube's object frame does not apply to an RGB-D recording of a flat organ: "
+                              "--object-frame board (default) or camera")
+    return replace(options, depth=SENSOR_DEPTH, segment="plane" if options.segment == "colortrack" else options.segment,
+                   object_frame="board" if options.object_frame == "auto" else options.object_frame)
+
+
+def rgbd_engine(rec: Recording, src: Path, options: EngineOptions, prompt: str | None = None) -> FrameEngine:
+    """The engine for an RGB-D recording: the depth camera, its recorded depth, the board frame."""
+    for topic in (layout.DEPTH_IMAGE, layout.DEPTH_INFO):
+        if not rec.has(topic):
+            raise InputError(src, f"source has no {topic}: not an RGB-D recording")
+    return FrameEngine(rec.depth_camera, 0.0, recording_prompt(rec, src, prompt), rgbd_options(options, src),
+                       up=camera_up(rec))
+
+
+def depth_view(depth_mm: np.ndarray, near_mm: float, far_mm: float) -> np.ndarray:
+    """A depth image drawn as grey BGR (near bright, unknown black): the image the segmenter, the
+    image-based trackers and the preview see when the colour view is not registered to the depth."""
+    scaled = np.nan_to_num((far_mm - depth_mm) / max(far_mm - near_mm, 1e-6), nan=0.0)
+    grey = np.clip(scaled * 255.0, 0, 255).astype(np.uint8)
+    return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+
+
+def depth_frames(rec: Recording, frames: int):
+    """(stamp_ns, depth view, depth_mm) of the first `frames` frames of an RGB-D recording; the view's
+    grey range is the first frame's 1st-99th depth percentiles."""
+    near = far = None
+    for k in range(frames):
+        depth = rec.depth_mm(k)
+        if near is None:
+            valid = depth[np.isfinite(depth)]
+            if valid.size == 0:
+                raise InputError(rec.path, "the first depth frame has no depth")
+            near, far = (float(v) for v in np.percentile(valid, [1, 99]))
+        yield int(rec.frame_times_ns[k]), depth_view(depth, near, far), depth
+
+
 def stereo_pairs(rec: Recording, frames: int):
     """(stamp_ns, left, right) rectified pairs of the first `frames` frames."""
     for k in range(frames):
@@ -134,12 +179,18 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
     check_output(out, overwrite, inputs=[src])  # before the work: the source is never replaced
     check_output(preview_path(out), True, inputs=[src])
     rec = Recording.open(src)
-    engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth))
+    if rec.is_rgbd:
+        engine = rgbd_engine(rec, src, options, options.prompt)
+    else:
+        if options.object_frame == "auto":
+            options = replace(options, object_frame="tissue")
+        engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth))
     n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
+    results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
     preview = None
     with DerivedWriter(out, overwrite=overwrite, inputs=(src,)) as writer:
         bar = tqdm(total=n_frames, desc=f"process {src.name}", unit="frame", disable=not options.progress)
-        for result in engine.run(stereo_pairs(rec, n_frames)):
+        for result in results:
             t = engine.clock.now()
             if result.index == 0:
                 writer.object_frame(engine.frame, result.stamp_ns)
@@ -176,14 +227,18 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "orientation_deg": str(rec.metadata.orientation_deg),
         "split": rec.metadata.split,
         "frames": str(frames),
-        "depth": options.depth,
+        "depth": engine.options.depth,
         "depth_parameters": json.dumps(_jsonable(parameters["depth"])),
-        "segment": options.segment,
+        "segment": engine.options.segment,
         "segment_parameters": json.dumps(_jsonable(parameters["segment"])),
         "prompt": prompt_text(engine.prompt),
         "tracker": options.tracker,
         "tracker_parameters": json.dumps(_jsonable({k: v for k, v in parameters["tracker"].items() if k != "name"})),
         "object_frame": json.dumps(_jsonable(engine.frame.to_dict())),
+        # tissue: the tube's object frame; board_plane: Z = the board's normal (up), origin under the
+        # tissue's centroid; camera: the camera frame itself (docs/reconstruction.md)
+        "object_frame_kind": engine.frame.diagnostics.get("kind", "tissue"),
+        "camera_frame_id": layout.DEPTH_FRAME if rec.is_rgbd else layout.LEFT_FRAME,
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),

@@ -36,12 +36,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "(OUT with .png: look at it before training). The source is never modified.")
     p.add_argument("src", type=Path, help="recording MCAP")
     p.add_argument("out", type=Path, nargs="?", help="derived MCAP (default: IN.processed.mcap)")
-    p.add_argument("--depth", default="sgbm", help="depth backend: sgbm (default), stereoanyvideo, recorded")
+    p.add_argument("--depth", default="sgbm", help="depth backend: sgbm (default), stereoanyvideo, recorded; an "
+                                                   "RGB-D recording's own depth (sensor) is always used")
     p.add_argument("--depth-options", help="backend options, key=value,... (e.g. code=DIR,checkpoint=FILE)")
     p.add_argument("--working-range-mm", type=float, nargs=2, default=(40.0, 300.0), metavar=("NEAR", "FAR"),
                    help="nearest and farthest surface in front of the scope; sets the sgbm disparity range "
                         "(default 40 300)")
-    p.add_argument("--segment", default="colortrack", help="mask backend: colortrack (default), sam2")
+    p.add_argument("--segment", default="colortrack",
+                   help="mask backend: colortrack (default for stereo), sam2, plane (default for RGB-D: what stands "
+                        "above a flat board)")
+    p.add_argument("--object-frame", default="auto", choices=["auto", "tissue", "board", "camera"],
+                   help="frame of clouds and tracks: tissue (the tube's object frame; auto for stereo), board "
+                        "(a flat organ's board, normal = up; auto for RGB-D) or camera")
     p.add_argument("--segment-options", help="backend options, key=value,... (e.g. config=...,checkpoint=...)")
     p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
                                     "(default: prompt_box in the recording's metadata)")
@@ -64,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,
         tracker_options=_options(args.tracker_options), num_points=args.points, seed=args.seed,
         ground_truth=args.ground_truth, max_frames=args.max_frames, progress=not args.quiet,
-        working_range_mm=tuple(args.working_range_mm),
+        working_range_mm=tuple(args.working_range_mm), object_frame=args.object_frame,
     )
     out = process_recording(args.src, args.out or default_output(args.src), options, overwrite=args.overwrite)
     print(f"wrote {out} and {preview_path(out).name} (the first frame's mask, object frame and points)")

@@ -8,6 +8,7 @@ A segmenter (`vfdata.recon.segmenter.Segmenter`) is a small state machine over a
   prompt, then a colour model, a flow-carried prior and a depth cue per frame.
 - `sam2` (`vfdata.recon.sam2_segmenter`): Meta's SAM2 video predictor from the user's local config
   and checkpoint.
+- `plane` (`vfdata.recon.plane`): for a depth camera over a flat board, what stands above the board.
 - `recorded`: masks supplied with the recording (the simulator's true masks), passed through; for
   measuring what the segmentation costs (the attribution ladder, docs/results.md).
 
@@ -27,6 +28,7 @@ import numpy as np
 from vfdata.errors import BackendError, InputError
 from vfdata.recon.colortrack import ColorTrackSegmenter, ColorTrackSettings
 from vfdata.recon.detector import DetectorPrompt
+from vfdata.recon.plane import PlaneSegmenter
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.sam2_segmenter import Sam2Segmenter
 from vfdata.recon.segmenter import Segmenter
@@ -73,7 +75,8 @@ class RecordedMasks(Segmenter):
         return self._next(image)
 
 
-SEGMENT_BACKENDS = {"colortrack": ColorTrackSegmenter, "sam2": Sam2Segmenter, "recorded": RecordedMasks}
+SEGMENT_BACKENDS = {"colortrack": ColorTrackSegmenter, "sam2": Sam2Segmenter, "recorded": RecordedMasks,
+                    "plane": PlaneSegmenter}
 
 
 def make_segmenter(name: str = "colortrack", **options) -> Segmenter:
