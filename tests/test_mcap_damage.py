@@ -30,9 +30,12 @@ pytestmark = pytest.mark.timeout(60)
 
 @pytest.fixture(scope="module")
 def pristine(tmp_path_factory) -> Path:
+    return write_pristine(tmp_path_factory.mktemp("damage") / "rec.mcap")
+
+
+def write_pristine(path: Path) -> Path:
     """12 stereo JPEG frames in 8 kB chunks, 1 kHz force in chunks of 100 samples, 100 Hz pose in
-    one chunk."""
-    path = tmp_path_factory.mktemp("damage") / "rec.mcap"
+    one chunk (also the base of bench/adversarial.py)."""
     calib = calibration()
     rng = np.random.default_rng(0)
     n_force, n_pose = 400, 40
