@@ -10,13 +10,22 @@ recordings:
     split: train          #   (each overridable with raw:, mcap:, processed:)
     frames: [0, 700]      # optional: only frames [start, stop) of the recording (splits in time)
     prompt: box:10,20,300,400   # optional: the first frame's tissue prompt for `vfdata process`
+    calibration: cal.yaml # optional: an RGB-D folder's rgbd_calibration.yaml kept outside it
+    meta: meta.yaml       # optional: its meta.yaml kept outside it (both relative to root)
 ```
+
+Entries that name one recording (the same `mcap:`) split it in time: each needs `frames:`, and
+stretches of different splits must lie a clip's length apart (`check_guard_gaps`), so that no
+clip's frames, nor its displacement's recent past, reach into another split.
 """
 
 from __future__ import annotations
 
+import os
+from collections import defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
+from itertools import combinations
 from pathlib import Path
 from typing import Literal
 
@@ -41,6 +50,8 @@ class ManifestEntry:
     processed: Path  # the derived MCAP (mask, depth, cloud, tracks)
     frames: tuple[int, int] | None = None  # [start, stop) frame range, None: every frame
     prompt: str | None = None  # first-frame tissue prompt ("box:..." or "points:...")
+    calibration: Path | None = None  # RGB-D raw folder: its rgbd_calibration.yaml when kept outside it
+    meta: Path | None = None  # raw folder: its meta.yaml when kept outside it
 
     @property
     def ground_truth(self) -> Path:
@@ -83,6 +94,12 @@ def _frames(path: Path, rid: str, value) -> tuple[int, int] | None:
     return int(value[0]), int(value[1])
 
 
+def _under(root: Path, relative) -> Path:
+    """root / relative with `..` removed lexically: the root folder (for outputs) may not exist yet,
+    and the OS cannot walk `..` out of a folder that does not exist."""
+    return Path(os.path.normpath(root / str(relative)))
+
+
 def _entry(path: Path, root: Path, item) -> ManifestEntry:
     if not isinstance(item, dict) or "id" not in item or item.get("split") not in SPLITS:
         raise InputError(path, f"recording entry {item!r} needs an id and a split (train, val or test)")
@@ -94,11 +111,38 @@ def _entry(path: Path, root: Path, item) -> ManifestEntry:
     prompt = item.get("prompt")
     if prompt is not None and not isinstance(prompt, str):
         raise InputError(path, f"recording '{rid}': prompt must be text such as box:x0,y0,x1,y1")
+    extra = {key: _under(root, item[key]) if item.get(key) is not None else None for key in ("calibration", "meta")}
     return ManifestEntry(
-        rid, orientation, item["split"], root / str(item.get("raw", rid)),
-        root / str(item.get("mcap", f"{rid}.mcap")), root / str(item.get("processed", f"{rid}{DERIVED_SUFFIX}")),
-        _frames(path, rid, item.get("frames")), prompt,
+        rid, orientation, item["split"], _under(root, item.get("raw", rid)),
+        _under(root, item.get("mcap", f"{rid}.mcap")), _under(root, item.get("processed", f"{rid}{DERIVED_SUFFIX}")),
+        _frames(path, rid, item.get("frames")), prompt, **extra,
     )
+
+
+def check_guard_gaps(manifest: Manifest, gap_frames: int) -> None:
+    """Entries sharing one recording (the same mcap) must each name `frames`, and two of different
+    splits must lie at least `gap_frames` frames apart (a clip's length); an InputError naming the
+    manifest and both entries otherwise."""
+    by_recording: dict[Path, list[ManifestEntry]] = defaultdict(list)
+    for entry in manifest.entries:
+        by_recording[entry.mcap].append(entry)
+    for entries in by_recording.values():
+        if len(entries) < 2:
+            continue
+        for a, b in combinations(entries, 2):
+            if a.frames is None or b.frames is None:
+                raise InputError(manifest.path, f"recordings '{a.id}' and '{b.id}' share {a.mcap.name}: each needs "
+                                                "frames: [start, stop]")
+            if a.split == b.split:
+                continue
+            first, second = sorted((a, b), key=lambda e: e.frames)
+            apart = second.frames[0] - first.frames[1]
+            if apart < gap_frames:
+                what = "overlap" if apart < 0 else f"are {apart} frames apart"
+                raise InputError(manifest.path, f"'{first.id}' ({first.split}, frames {list(first.frames)}) and "
+                                                f"'{second.id}' ({second.split}, frames {list(second.frames)}) of "
+                                                f"{a.mcap.name} {what}: splits of one recording need a guard gap of "
+                                                f"a clip's length ({gap_frames} frames)")
 
 
 def load_manifest(path: str | Path) -> Manifest:
@@ -131,6 +175,9 @@ def write_manifest(path: str | Path, name: str, entries: list[ManifestEntry]) ->
             item["frames"] = list(e.frames)
         if e.prompt is not None:
             item["prompt"] = e.prompt
+        for key in ("calibration", "meta"):
+            if getattr(e, key) is not None:
+                item[key] = str(getattr(e, key))
         recordings.append(item)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.partial")

@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
-from vfdata.manifest import Manifest, load_manifest
+from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -43,6 +43,7 @@ class ForceDataModule(L.LightningDataModule):
         if not isinstance(spec, ClipSpec):  # a dict from a saved config
             spec = ClipSpec.from_dict(dict(spec))
         self.manifest: Manifest = load_manifest(manifest)
+        check_guard_gaps(self.manifest, spec.clip_frames)
         self.spec = spec
         self.batch_size, self.num_workers, self.cache_dir = batch_size, num_workers, cache_dir
         self.predict_split, self.progress = predict_split, progress

@@ -14,6 +14,7 @@ from tqdm import tqdm
 from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
@@ -34,11 +35,13 @@ class ProcessJob:
 
 
 def derived_path(entry: ManifestEntry, tracker: str) -> Path:
-    return entry.mcap.with_name(derived_name(entry.id, tracker))
+    """The derived file of the entry's recording (named after its MCAP, so entries that split one
+    recording in time share it)."""
+    return entry.mcap.with_name(derived_name(entry.mcap.name.removesuffix(".mcap"), tracker))
 
 
 def convert(entry: ManifestEntry, progress: bool = False) -> None:
-    """`<id>.mcap` from the entry's raw folder or bag, unless it exists."""
+    """`<id>.mcap` from the entry's raw folder (stereo or RGB-D) or bag, unless it exists."""
     if entry.mcap.is_file():
         return
     if not entry.raw.exists():
@@ -47,6 +50,8 @@ def convert(entry: ManifestEntry, progress: bool = False) -> None:
     options = ConvertOptions(progress=progress)
     if is_bag(entry.raw):
         convert_bag(entry.raw, entry.mcap, options=options)
+    elif is_rgbd_folder(entry.raw):
+        convert_rgbd_folder(entry.raw, entry.mcap, options=options, calibration=entry.calibration, meta=entry.meta)
     else:
         convert_raw_folder(entry.raw, entry.mcap, options=options)
 
@@ -78,6 +83,7 @@ def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgb
         jobs += [ProcessJob(str(e.mcap), str(derived_path(e, name)), recipe.tracker, recipe.depth or depth,
                             recipe.segment or segment, e.prompt or prompt, max_frames)
                  for e in entries if not derived_path(e, name).is_file()]
+    jobs = list({job.out: job for job in jobs}.values())  # entries splitting one recording share its jobs
     started = time.perf_counter()
     with tqdm(total=len(jobs), desc="process", unit="recording", disable=not progress or not jobs) as bar:
         if workers > 1 and len(jobs) > 1:
