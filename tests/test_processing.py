@@ -139,3 +139,22 @@ def test_the_source_cannot_be_the_output(recording, tmp_path, capsys):
     assert main(["process", "--quiet", "--overwrite", "--max-frames", "2", str(recording), str(recording)]) == 1
     assert "input" in capsys.readouterr().err
     assert recording.read_bytes() == before
+
+
+def test_one_thread_by_default_and_the_callers_counts_restored(recording, processed, tmp_path):
+    """The thread policy (vfdata/threads.py): processing runs with one torch thread unless asked for
+    another, records the count beside its stage rates and leaves the caller's setting as it was."""
+    import torch
+
+    assert Recording.open(processed).metadata_records[layout.DERIVED_METADATA]["stage_threads"] == "1"
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        out = process_recording(recording, tmp_path / "t.processed.mcap",
+                                ProcessOptions(progress=False, threads=2, max_frames=2))
+        assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+    assert Recording.open(out).metadata_records[layout.DERIVED_METADATA]["stage_threads"] == "2"
+    with pytest.raises(SystemExit):
+        main(["process", str(recording), str(tmp_path / "u.mcap"), "--threads", "0"])

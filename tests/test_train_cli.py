@@ -29,6 +29,16 @@ def test_fast_dev_run(tmp_path):
     train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.fast_dev_run=true"])
 
 
+def test_threads_option_sets_the_training_process(tmp_path):
+    """train.py runs with one torch thread unless --threads says otherwise (vfdata/threads.py)."""
+    torch.set_num_threads(3)
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'a'}", "--trainer.fast_dev_run=true"])
+    assert torch.get_num_threads() == 1
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'b'}", "--trainer.fast_dev_run=true",
+                "--threads=2"])
+    assert torch.get_num_threads() == 2
+
+
 def test_epoch_times_are_logged(tmp_path):
     train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.max_epochs=2",
                 "--checkpoint.save_last=false"])

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from vfdata import __version__
@@ -26,6 +25,7 @@ from vfdata.recon.object_frame import up_in_camera
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedWriter
+from vfdata.threads import DEFAULT_THREADS, thread_limit
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
 TRACKERS = (*TRACKER_NAMES, "none")
@@ -40,6 +40,7 @@ class ProcessOptions(EngineOptions):
     ground_truth: Path | None = None  # simulator ground truth (depth 'recorded', tracker 'groundtruth')
     max_frames: int | None = None
     progress: bool = True
+    threads: int | None = DEFAULT_THREADS  # torch/OpenCV threads while processing (vfdata.threads); None: as set
 
 
 def default_output(src: Path) -> Path:
@@ -170,12 +171,19 @@ def stereo_pairs(rec: Recording, frames: int):
 
 def process_recording(src: str | Path, out: str | Path | None = None, options: ProcessOptions | None = None,
                       overwrite: bool = False) -> Path:
-    """Run depth, mask, cloud, object frame and tracking over a recording; write the derived MCAP."""
+    """Run depth, mask, cloud, object frame and tracking over a recording; write the derived MCAP.
+    Runs with `options.threads` torch/OpenCV threads (default 1, vfdata.threads) and restores the
+    caller's counts afterwards."""
     options = options or ProcessOptions()
     src = Path(src)
     out = Path(out) if out is not None else default_output(src)
     if options.tracker not in TRACKERS:
         raise VisionForceError(f"unknown tracker '{options.tracker}' (known: {', '.join(TRACKERS)})")
+    with thread_limit(options.threads) as threads:
+        return _process(src, out, options, overwrite, threads)
+
+
+def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, threads: int) -> Path:
     check_output(out, overwrite, inputs=[src])  # before the work: the source is never replaced
     check_output(preview_path(out), True, inputs=[src])
     rec = Recording.open(src)
@@ -207,7 +215,7 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
         if offline is not None:
             for i, (points, visible) in enumerate(zip(*offline, strict=True)):
                 writer.tracks(int(rec.frame_times_ns[i]), engine.frame.to_object(points), visible)
-        writer.close(_metadata(rec, src, options, engine, n_frames))
+        writer.close(_metadata(rec, src, options, engine, n_frames, threads))
     # Written once the MCAP is complete; it describes that MCAP, so it replaces an older picture.
     with atomic_output(preview_path(out), overwrite=True, inputs=[src]) as tmp:
         ok, data = cv2.imencode(".png", preview)
@@ -217,7 +225,8 @@ def process_recording(src: str | Path, out: str | Path | None = None, options: P
     return out
 
 
-def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameEngine, frames: int) -> dict:
+def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameEngine, frames: int,
+              threads: int) -> dict:
     parameters = engine.parameters
     return {
         "stage": "process",
@@ -242,7 +251,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
-        "stage_threads": str(torch.get_num_threads()),
+        "stage_threads": str(threads),
         "converter_version": __version__,
     }
 

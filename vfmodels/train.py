@@ -20,10 +20,12 @@ import inspect
 import sys
 from pathlib import Path
 
+from jsonargparse.typing import PositiveInt
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.cli import LightningCLI
 
 from vfdata.errors import InputError, VisionForceError
+from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
 from vfmodels.checkpoint import ResumableCheckpoint
 from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
@@ -101,6 +103,8 @@ def check_checkpoint(ckpt_path: str | Path | None) -> None:
 class ForceCLI(LightningCLI):
     def add_arguments_to_parser(self, parser) -> None:
         parser.description = DESCRIPTION
+        parser.add_argument("--threads", type=PositiveInt | None, default=DEFAULT_THREADS,
+                            help=THREADS_HELP + "; null leaves torch's default")
         # Keep the checkpoint with the lowest validation loss, and last.ckpt after every epoch for resuming.
         parser.add_lightning_class_args(ResumableCheckpoint, "checkpoint")
         # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
@@ -121,8 +125,9 @@ class ForceCLI(LightningCLI):
         )
 
     def before_instantiate_classes(self) -> None:
-        # CSV and TensorBoard logs in the run folder unless the config names its own loggers.
         cfg = self.config[self.subcommand] if self.subcommand else self.config
+        set_threads(cfg.get("threads", DEFAULT_THREADS))  # before any data is decoded or model built
+        # CSV and TensorBoard logs in the run folder unless the config names its own loggers.
         if cfg.trainer.logger in (None, True):
             root = cfg.trainer.default_root_dir
             cfg.trainer.logger = [

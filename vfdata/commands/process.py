@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from vfdata.errors import VisionForceError
+from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
 
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
 # `vfdata --help` starts fast; the registry checks the tracker's name.
@@ -56,7 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--points", type=int, default=256, help="tracked points (default 256)")
     p.add_argument("--ground-truth", type=Path, help="simulator ground_truth/ folder (default: beside the raw folder)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed of the point sampling and the tracker (default 0; same seed: same tracks)")
+    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -70,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
         segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,
         tracker_options=_options(args.tracker_options), num_points=args.points, seed=args.seed,
         ground_truth=args.ground_truth, max_frames=args.max_frames, progress=not args.quiet,
-        working_range_mm=tuple(args.working_range_mm), object_frame=args.object_frame,
+        working_range_mm=tuple(args.working_range_mm), object_frame=args.object_frame, threads=args.threads,
     )
     out = process_recording(args.src, args.out or default_output(args.src), options, overwrite=args.overwrite)
     print(f"wrote {out} and {preview_path(out).name} (the first frame's mask, object frame and points)")
