@@ -36,7 +36,10 @@ def prepare(workdir: Path, frames: int):
     from vfdata.processing import ProcessOptions, process_recording
     from vfdata.sim import synthesize
 
-    manifest = synthesize("mini", workdir, seed=0, workers=1, progress=False, frames=frames)
+    workdir = workdir / f"frames{frames}"
+    manifest = workdir / "mini.manifest.yaml"  # kept from an earlier run of the same length
+    if not manifest.is_file():
+        manifest = synthesize("mini", workdir, seed=0, workers=1, progress=False, frames=frames)
     entries = list(load_manifest(manifest))
     for e in entries:
         if not e.mcap.is_file():
@@ -101,7 +104,7 @@ def main() -> int:
     process: dict[int, list[float]] = {t: [] for t in settings}
     cpu: dict[int, list[float]] = {t: [] for t in settings}
     fit: dict[int, list[float]] = {t: [] for t in settings}
-    with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
+    with tempfile.TemporaryDirectory(dir=manifest.parent) as tmp:
         for round_ in range(args.repeats):
             for t in settings if round_ % 2 == 0 else reversed(settings):
                 wall, cpu_s = time_process(test.mcap, Path(tmp) / f"p{t}.processed.mcap", t)

@@ -201,3 +201,54 @@ def test_debug_shows_the_traceback(tmp_path):
     with pytest.raises(InputError):
         train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}",
                     f"--ckpt_path={tmp_path / 'missing.ckpt'}", "--debug"])
+
+
+def test_early_stopping_and_the_closing_line(tmp_path, capsys):
+    """With lr = 0 the validation loss never improves after epoch 0: patience 2 stops after epoch 2, and
+    the closing line names the best checkpoint (epoch 0) and a test command that finds it."""
+    root = tmp_path / "run"
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={root}", "--trainer.max_epochs=30",
+                "--early_stopping.patience=2", "--model.lr=0"])
+    assert torch.load(root / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 2
+    best = best_checkpoint(root / "checkpoints")
+    out = capsys.readouterr().out
+    assert str(best) in out and "epoch 0" in out
+    command = next(line for line in out.splitlines() if "train.py test" in line).split("train.py ", 1)[1]
+    train.main(command.split())  # the printed command runs as is and tests the best checkpoint
+
+
+def test_patience_null_runs_every_epoch(tmp_path):
+    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.max_epochs=4",
+                "--early_stopping.patience=null", "--model.lr=0"])
+    assert torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 3
+
+
+@pytest.mark.parametrize("config, enabled", [("proposed.yaml", True), ("visionforce.yaml", False)])
+def test_early_stopping_follows_the_checkpoint_monitor(config, enabled, tmp_path):
+    """visionforce keeps its last averaged weights (no monitor): it runs every epoch; proposed stops early."""
+    from vfmodels.early_stopping import ValidationEarlyStopping
+    from vfmodels.train import make_cli
+
+    cli = make_cli([f"--config={ROOT / 'configs' / config}", f"--trainer.default_root_dir={tmp_path}",
+                    "--trainer.accelerator=cpu", "--data.manifest=datasets/mini.manifest.yaml"], run=False)
+    stoppers = [c for c in cli.trainer.callbacks if isinstance(c, ValidationEarlyStopping)]
+    assert len(stoppers) == 1 and stoppers[0].enabled is enabled
+
+
+def test_a_failed_fit_leaves_no_empty_run_folders(tmp_path):
+    """A fit that fails before its first step (here: the model expects 5 features, the clips have 6)
+    removes the log versions and folders it created."""
+    root = tmp_path / "run"
+    with pytest.raises(SystemExit):
+        train.main(["fit", *SYNTHETIC[:1], "--model.model.in_features=5", *SYNTHETIC[2:],
+                    f"--trainer.default_root_dir={root}", "--trainer.max_epochs=1"])
+    assert not root.exists()
+
+
+def test_run_eta():
+    from vfmodels.progress import format_seconds, run_eta
+
+    assert run_eta(10.0, 1, 0.0, 4) == pytest.approx(30.0)
+    assert run_eta(15.0, 1, 0.5, 4) == pytest.approx(25.0)
+    assert run_eta(0.0, 0, 0.0, 4) is None
+    assert [format_seconds(s) for s in (7.4, 125, 3725)] == ["7s", "2m05s", "1h02m"]

@@ -240,7 +240,8 @@ class ForceRegressor(L.LightningModule):
 
     def on_fit_start(self) -> None:
         initialisation = getattr(self.model, "initialisation", "random")
-        rank_zero_info(f"{type(self.model).__name__}: initialisation {initialisation}")
+        if initialisation != "random":  # worth a line only when weights were loaded (it is in the hparams)
+            rank_zero_info(f"{type(self.model).__name__}: initialisation {initialisation}")
         if self.logger is not None:
             self.logger.log_hyperparams({"model_class": type(self.model).__name__, "initialisation": initialisation})
 

@@ -22,14 +22,19 @@ from pathlib import Path
 
 from jsonargparse.typing import PositiveInt
 from lightning.pytorch import LightningDataModule
+from lightning.pytorch.callbacks import ProgressBar
 from lightning.pytorch.cli import LightningCLI
 
 from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
 from vfmodels.checkpoint import ResumableCheckpoint
+from vfmodels.early_stopping import ValidationEarlyStopping
 from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
+from vfmodels.progress import RunProgressBar
+from vfmodels.quiet import quiet_lightning
 from vfmodels.regressor import ForceRegressor, read_checkpoint
+from vfmodels.run_folder import closing_line, remove_new_entries, run_entries
 
 DESCRIPTION = ("VisionForce: train, test and run the force models (Set Transformer-LSTM on tracked tissue "
                "points, and the baselines) on processed recordings; configs in configs/, docs in docs/models.md.")
@@ -101,12 +106,19 @@ def check_checkpoint(ckpt_path: str | Path | None) -> None:
 
 
 class ForceCLI(LightningCLI):
+    def __init__(self, *args, argv: list[str] | None = None, **kwargs) -> None:
+        self.argv = list(sys.argv[1:] if argv is None else argv)  # for the closing line's test command
+        self._existed: set[Path] | None = None
+        super().__init__(*args, args=argv, **kwargs)
+
     def add_arguments_to_parser(self, parser) -> None:
         parser.description = DESCRIPTION
         parser.add_argument("--threads", type=PositiveInt | None, default=DEFAULT_THREADS,
                             help=THREADS_HELP + "; null leaves torch's default")
         # Keep the checkpoint with the lowest validation loss, and last.ckpt after every epoch for resuming.
         parser.add_lightning_class_args(ResumableCheckpoint, "checkpoint")
+        # Stop when the monitored validation loss has not improved for `patience` epochs (null: every epoch).
+        parser.add_lightning_class_args(ValidationEarlyStopping, "early_stopping")
         # `predict` writes <id>.force.mcap (/force/estimate) beside each recording or in output_dir.
         parser.add_lightning_class_args(ForceEstimateWriter, "prediction_writer")
         # time/epoch_s and time/epoch_cpu_s in the logs (a run's wall time survives resuming).
@@ -120,6 +132,8 @@ class ForceCLI(LightningCLI):
             "trainer.max_epochs": 60,
             "trainer.default_root_dir": "runs/force",
         })
+        parser.link_arguments("checkpoint.monitor", "early_stopping.monitor")
+        parser.link_arguments("checkpoint.mode", "early_stopping.mode")
         parser.link_arguments(
             "trainer.default_root_dir", "checkpoint.dirpath", compute_fn=lambda root: str(Path(root) / "checkpoints")
         )
@@ -127,6 +141,7 @@ class ForceCLI(LightningCLI):
     def before_instantiate_classes(self) -> None:
         cfg = self.config[self.subcommand] if self.subcommand else self.config
         set_threads(cfg.get("threads", DEFAULT_THREADS))  # before any data is decoded or model built
+        self._existed = run_entries(Path(cfg.trainer.default_root_dir))
         # CSV and TensorBoard logs in the run folder unless the config names its own loggers.
         if cfg.trainer.logger in (None, True):
             root = cfg.trainer.default_root_dir
@@ -160,10 +175,30 @@ class ForceCLI(LightningCLI):
         self._resolve_checkpoint()
         adopt_normalisation(self.model, self.datamodule)
 
+    def after_fit(self) -> None:
+        if self.trainer.is_global_zero and not self.trainer.fast_dev_run:
+            print(closing_line(self.trainer, self.argv), flush=True)
+
+    def _instantiate_trainer(self, config: dict, callbacks: list):
+        # The whole run's remaining time in the progress bar (Lightning's bar shows only the epoch's).
+        has_bar = any(isinstance(c, ProgressBar) for c in [*(config.get("callbacks") or []), *callbacks])
+        if config.get("enable_progress_bar") is not False and not has_bar:
+            callbacks = [*callbacks, RunProgressBar()]
+        return super()._instantiate_trainer(config, callbacks)
+
+    def _run_subcommand(self, subcommand: str) -> None:
+        try:
+            super()._run_subcommand(subcommand)
+        except BaseException:
+            if subcommand == "fit" and self.trainer.global_step == 0 and self.trainer.is_global_zero:
+                remove_new_entries(Path(self.trainer.default_root_dir), self._existed)
+            raise
+
 
 def make_cli(args: list[str] | None = None, run: bool = True) -> ForceCLI:
+    quiet_lightning()
     return ForceCLI(ForceRegressor, LightningDataModule, subclass_mode_data=True,
-                    save_config_kwargs={"overwrite": True}, args=args, run=run)
+                    save_config_kwargs={"overwrite": True}, argv=args, run=run)
 
 
 def _named_error(exc: BaseException) -> VisionForceError | None:

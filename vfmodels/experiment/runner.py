@@ -40,6 +40,8 @@ from vfmodels.prediction_writer import PredictionCollector
 from vfmodels.regressor import ForceRegressor
 from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
 
+# Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
+PAPER_PROTOCOL = ("--early_stopping.patience=null",)
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
@@ -119,7 +121,7 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     args = [f"--config={config}", f"--data.manifest={manifest}", f"--seed_everything={seed}",
             f"--trainer.default_root_dir={run_dir}", "--trainer.enable_progress_bar=false",
             "--trainer.enable_model_summary=false", "--data.progress=false",
-            f"--data.cache_dir={cache_dir}", *variant.overrides, *options.train_args]
+            f"--data.cache_dir={cache_dir}", *PAPER_PROTOCOL, *variant.overrides, *options.train_args]
     if options.epochs is not None:
         args.append(f"--trainer.max_epochs={options.epochs}")
     started = time.perf_counter()
