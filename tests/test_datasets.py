@@ -382,3 +382,31 @@ def test_polar_features_place_each_point_around_the_axis():
     np.testing.assert_allclose(tokens[1, 0, :3], [1.0, 0.0, 10.0], atol=1e-6)  # th0 = 0 (up), r0 = 10 mm
     np.testing.assert_allclose(tokens[1, 1, :3], [0.0, -1.0, 20.0], atol=1e-6)  # th0 = -90 deg
     np.testing.assert_allclose(tokens[1, 0, 3:6], [1.0, 2.0, 3.0], atol=1e-6)  # displacement, mm
+
+
+def test_the_one_line_ways_in_and_denormalise(dataset_root):
+    """from_manifest for the dataset and the data module; a network's output to N with the training
+    split's statistics, as ForceRegressor does it."""
+    import vfdata
+    from vfmodels import ForceRegressor, SetTransformerLSTM
+
+    _, manifest = dataset_root
+    train = vfdata.ForceClipDataset.from_manifest(manifest, split="train", progress=False)
+    assert {e.split for e in train.entries} == {"train"}
+    assert [e.id for e in train.entries] == [e.id for e in vfdata.load_manifest(manifest).split("train")]
+    module = vfdata.ForceDataModule.from_manifest(manifest, batch_size=2, progress=False)
+    module.setup("fit")
+    with pytest.raises(TypeError):
+        vfdata.ForceDataModule(vfdata.load_manifest(manifest))
+    stats = module.normalisation
+    regressor = ForceRegressor(SetTransformerLSTM(in_features=6))
+    regressor.set_normalisation(**stats)
+    regressor.eval()
+    batch = next(iter(module.train_dataloader()))
+    with torch.no_grad():
+        out = regressor.model(vfdata.normalise_input(batch["tokens"], stats), batch.get("valid"))
+        torch.testing.assert_close(vfdata.denormalise_force(out, stats), regressor.denormalise_force(out))
+        torch.testing.assert_close(vfdata.denormalise_force(vfdata.normalise_force(batch["force"], stats), stats),
+                                   batch["force"], equal_nan=True)
+        torch.testing.assert_close(vfdata.normalise_input(batch["tokens"], stats),
+                                   regressor.normalise_input(batch["tokens"]))

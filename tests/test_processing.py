@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from vfdata.cli import main
+from vfdata.errors import InputError
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording, layout
@@ -158,3 +159,21 @@ def test_one_thread_by_default_and_the_callers_counts_restored(recording, proces
     assert Recording.open(out).metadata_records[layout.DERIVED_METADATA]["stage_threads"] == "2"
     with pytest.raises(SystemExit):
         main(["process", str(recording), str(tmp_path / "u.mcap"), "--threads", "0"])
+
+
+def test_a_derived_file_reads_like_a_recording(processed):
+    """frame(i) holds what the file has for that frame; metadata values come typed."""
+    derived = DerivedRecording.open(processed)
+    assert derived.num_frames == FRAMES
+    last = derived.frame(-1)
+    assert last.index == FRAMES - 1 and last.stamp_ns == derived.frame_times_ns[-1]
+    np.testing.assert_array_equal(last.mask, derived.mask(FRAMES - 1))
+    assert last.points_mm.shape == (256, 3) and last.visible.shape == (256,) and last.cloud_mm.shape[1] == 3
+    assert [f.index for f in derived.frames()] == list(range(FRAMES))
+    with pytest.raises(IndexError):
+        derived.frame(FRAMES)
+    assert derived.meta.number("frames") == FRAMES and derived.meta.number("stage_threads") == 1
+    assert derived.meta.value("up_known") is True and isinstance(derived.meta.value("stage_fps"), dict)
+    assert derived.meta.typed()["depth"] == "sgbm"
+    with pytest.raises(InputError):
+        derived.meta.number("depth")

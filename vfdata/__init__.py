@@ -1,19 +1,26 @@
 """VisionForce data: recordings (MCAP), conversion, simulation, reconstruction, tracking, clips.
 
 `vfdata.Recording` is the reader, `vfdata.DerivedRecording` the reader of processed files,
-`vfdata.load_manifest` the dataset manifests and `vfdata.ClipSpec` how clips are made;
+`vfdata.load_manifest` the dataset manifests (`Manifest.split("train")` the recordings of a split) and
+`vfdata.ClipSpec` how clips are made; `vfdata.denormalise_force` turns a network's output into N;
 `vfdata.ForceClipDataset` and `vfdata.ForceDataModule` (torch, Lightning) load on first use so that
 the command line starts without them."""
 
 __version__ = "0.1.0"
 
-__all__ = ["ClipSpec", "DerivedRecording", "ForceClipDataset", "ForceDataModule", "Recording", "load_manifest",
-           "__version__"]
+__all__ = ["ClipSpec", "DerivedRecording", "ForceClipDataset", "ForceDataModule", "Manifest", "ManifestEntry", "SPLITS",
+           "Recording", "denormalise_force", "load_manifest", "normalise_force", "normalise_input", "__version__"]
 
 _WHERE = {
     "Recording": "vfdata.recording.reader",
     "DerivedRecording": "vfdata.recording.derived",
     "load_manifest": "vfdata.manifest",
+    "Manifest": "vfdata.manifest",
+    "ManifestEntry": "vfdata.manifest",
+    "SPLITS": "vfdata.manifest",
+    "normalise_input": "vfdata.clips.normalisation",
+    "normalise_force": "vfdata.clips.normalisation",
+    "denormalise_force": "vfdata.clips.normalisation",
     "ClipSpec": "vfdata.clips.spec",
     "ForceClipDataset": "vfdata.clips.dataset",
     "ForceDataModule": "vfdata.clips.datamodule",

@@ -40,6 +40,8 @@ class ForceDataModule(L.LightningDataModule):
                  cache_dir: str | None = None, predict_split: Literal["train", "val", "test"] = "test",
                  progress: bool = True):
         super().__init__()
+        if not isinstance(manifest, (str, Path)):
+            raise TypeError(f"ForceDataModule takes the path of a manifest file, not {type(manifest).__name__}")
         if not isinstance(spec, ClipSpec):  # a dict from a saved config
             spec = ClipSpec.from_dict(dict(spec))
         self.manifest: Manifest = load_manifest(manifest)
@@ -50,6 +52,11 @@ class ForceDataModule(L.LightningDataModule):
         self.datasets: dict[str, ForceClipDataset] = {}
         self.normalisation: dict[str, torch.Tensor] | None = None
         self._save_spec()
+
+    @classmethod
+    def from_manifest(cls, manifest: str | Path, spec: ClipSpec | None = None, **kwargs) -> ForceDataModule:
+        """The one-line way in, as `ForceClipDataset.from_manifest`: every split of a manifest file."""
+        return cls(str(manifest), spec or DEFAULT_SPEC, **kwargs)
 
     def _save_spec(self) -> None:
         # Plain values only: checkpoints load with torch.load(weights_only=True).

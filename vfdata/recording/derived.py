@@ -116,7 +116,29 @@ class DerivedMeta:
         return cls(dict(record), version, frame)
 
     def get(self, key: str, default: str | None = None) -> str | None:
+        """The value as written (text)."""
         return self.values.get(key, default)
+
+    def value(self, key: str, default=None):
+        """The value typed: numbers, true/false, lists and dicts parsed (JSON), other text as it is."""
+        text = self.values.get(key)
+        if text is None:
+            return default
+        try:
+            return json.loads(text)
+        except ValueError:
+            return text
+
+    def number(self, key: str, default: float | None = None) -> float | int | None:
+        """A numeric value (e.g. `frames`, `stage_threads`); an InputError naming the key if it is not one."""
+        value = self.value(key, default)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise InputError(self.values.get("source", "derived metadata"), f"'{key}' is not a number: {value!r}")
+        return value
+
+    def typed(self) -> dict:
+        """Every key with its typed value (see `value`)."""
+        return {key: self.value(key) for key in self.values}
 
     def flag(self, key: str) -> bool:
         return str(self.values.get(key, "false")).lower() == "true"
@@ -207,9 +229,22 @@ class Tracks:
         return self.frame.to_camera(self.points_object_mm[i])
 
 
+@dataclass(frozen=True)
+class DerivedFrame:
+    """One frame of a derived file, what `DerivedRecording.frame(i)` returns (None: not in the file)."""
+
+    index: int
+    stamp_ns: int
+    mask: np.ndarray | None  # (H, W) bool
+    depth_mm: np.ndarray | None  # (H, W) float, NaN unknown
+    cloud_mm: np.ndarray | None  # (M, 3) tissue cloud, object frame
+    points_mm: np.ndarray | None  # (N, 3) tracked points, object frame
+    visible: np.ndarray | None  # (N,) bool
+
+
 class DerivedRecording:
     """A derived MCAP opened for reading, frame by frame like a `Recording`: `num_frames`,
-    `frame_times_ns`, `mask(i)`, `depth_mm(i)`, `cloud_mm(i)`, `tracks()`, typed `meta`."""
+    `frame_times_ns`, `frame(i)`, `mask(i)`, `depth_mm(i)`, `cloud_mm(i)`, `tracks()`, typed `meta`."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -258,6 +293,28 @@ class DerivedRecording:
     @property
     def num_frames(self) -> int:
         return len(self.frame_times_ns)
+
+    def frame(self, i: int) -> DerivedFrame:
+        """Everything the file holds for frame i (negative i counts from the end, as in a list)."""
+        n = self.num_frames
+        if not -n <= i < n:
+            raise IndexError(f"{self.path}: frame {i} of {n}")
+        i %= n
+        stamp = int(self.frame_times_ns[i])
+        points = visible = None
+        if self.has(layout.TRACKING_POINTS):
+            times = self.recording.log_times_ns(layout.TRACKING_POINTS)
+            j = int(np.searchsorted(times, stamp))
+            if j < len(times) and times[j] == stamp:
+                points, visible = decode_cloud(self.recording.message(layout.TRACKING_POINTS, j), self.meta.version)
+        return DerivedFrame(i, stamp, self.mask(i) if self.has(layout.TISSUE_MASK) else None,
+                            self.depth_mm(i) if self.has(layout.TISSUE_DEPTH) else None,
+                            self.cloud_mm(i) if self.has(layout.TISSUE_POINTS) else None, points, visible)
+
+    def frames(self):
+        """`frame(i)` for every frame, in order."""
+        for i in range(self.num_frames):
+            yield self.frame(i)
 
     def mask(self, i: int) -> np.ndarray:
         self._require(layout.TISSUE_MASK, "tissue mask")
