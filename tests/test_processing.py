@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from vfdata.cli import main
-from vfdata.errors import InputError
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.errors import InputError
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DERIVED_VERSION, DerivedRecording
