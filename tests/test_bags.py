@@ -746,16 +746,13 @@ def test_mcap_record_that_disagrees_with_its_index_falls_back_to_rosbags(tmp_pat
         assert bag_index.open_indexed_bag(reader, bag, {spec.left}) is not None  # only the topics asked for
 
 
-def test_mcap_without_message_indexes_falls_back(tmp_path):
-    """A writer may leave out the message indexes (the chunk indexes then point at none): the
-    statistics still count the messages, so the missing ones are noticed and the bag is streamed."""
-    bag = tmp_path / "m"
-    write_bag(bag, BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=3))
-    (file,) = bag.glob("*.mcap")
+def _rewrite_mcap_bag(file: Path, index_types: IndexType = IndexType.ALL) -> None:
+    """The bag's MCAP file written again by the `mcap` package (chunk CRCs, as rosbag2's C++ writer
+    writes them; rosbags writes none)."""
     with open(file, "rb") as stream:
         messages = list(make_reader(stream).iter_messages())
     with open(file, "wb") as stream:
-        writer = McapFileWriter(stream, compression=CompressionType.NONE, index_types=IndexType.CHUNK)
+        writer = McapFileWriter(stream, compression=CompressionType.NONE, index_types=index_types)
         writer.start(profile="ros2")
         schemas, channels = {}, {}
         for schema, channel, message in messages:
@@ -766,8 +763,54 @@ def test_mcap_without_message_indexes_falls_back(tmp_path):
                                                                schemas[schema.id], channel.metadata)
             writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
         writer.finish()
+
+
+def test_mcap_without_message_indexes_falls_back(tmp_path):
+    """A writer may leave out the message indexes (the chunk indexes then point at none): the
+    statistics still count the messages, so the missing ones are noticed and the bag is streamed."""
+    bag = tmp_path / "m"
+    write_bag(bag, BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=3))
+    (file,) = bag.glob("*.mcap")
+    _rewrite_mcap_bag(file, IndexType.CHUNK)
     with bag_scan.open_bag(bag) as reader:
         assert bag_index.open_indexed_bag(reader, bag, {"/netft_data"}) is None
+
+
+def test_mcap_bag_chunk_failing_its_crc_is_refused(tmp_path):
+    bag = tmp_path / "m"
+    write_bag(bag, BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=3))
+    (file,) = bag.glob("*.mcap")
+    _rewrite_mcap_bag(file)
+    clean = raw_messages(convert_bag(bag, tmp_path / "clean.mcap", options=PNG))
+    with bag_scan.open_bag(bag) as reader:
+        indexed = bag_index.open_indexed_bag(reader, bag, {"/netft_data"})
+        assert isinstance(indexed, bag_index._McapBag)  # random access, the path that checks the CRCs
+        position = int(indexed._refs["/netft_data"][2][10])  # data of the 11th force message
+        indexed.close()
+    data = bytearray(file.read_bytes())
+    data[position + 30] ^= 0x10  # a bit of a force value: the records still match their indexes
+    file.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"the chunk at byte \d+ fails its CRC: the bag is damaged"):
+        convert_bag(bag, tmp_path / "damaged.mcap", options=PNG)
+    assert not (tmp_path / "damaged.mcap").exists() and clean
+
+
+def test_bit_flips_in_a_ros1_bag_end_in_its_data_or_one_line(tmp_path, capsys):
+    """rosbags fails on a damaged ROS 1 chunk in many ways (AssertionError, IndexError, LZ4's
+    RuntimeError): each must be a one-line error naming the bag. ROS 1 bags have no checksums, so a
+    flip inside a value cannot be noticed; it must not crash."""
+    bag = tmp_path / "x.bag"
+    write_bag(bag, BagSpec(frames=4, lz4=True))
+    pristine = bag.read_bytes()
+    for at in range(0, len(pristine), len(pristine) // 60):
+        damaged = bytearray(pristine)
+        damaged[at] ^= 0x24
+        bag.write_bytes(bytes(damaged))
+        out = tmp_path / "out.mcap"
+        code = main(["convert", "--quiet", "--format", "png", "--overwrite", str(bag), str(out)])
+        err = capsys.readouterr().err.strip()
+        assert code in (0, 1) and "internal error" not in err, (at, err)
+        assert code == 0 or (len(err.splitlines()) == 1 and str(bag) in err), (at, err)
 
 
 def test_payload_helpers_match_message_encoding():

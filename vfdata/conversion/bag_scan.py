@@ -30,7 +30,7 @@ from vfdata.conversion.bag_index import IndexedBag, open_indexed_bag, ros2_stora
 from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, WRENCH_STAMPED, TopicChoice, topic_types
 from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
-from vfdata.errors import InputError
+from vfdata.errors import InputError, VisionForceError
 from vfdata.recording.cdr import CdrError
 from vfdata.recording.messages import (
     MAX_STAMP_NS,
@@ -330,7 +330,10 @@ def bag_messages(reader: AnyReader, path: Path, connections) -> Iterator[tuple[o
         return
     try:
         yield from reader.messages(connections=connections)
-    except (AnyReaderError, Ros1ReaderError, Ros2ReaderError) as exc:
+    except VisionForceError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a damaged bag fails deep in rosbags or its codecs in many ways
+        # (a flipped bit: AssertionError, IndexError, LZ4's RuntimeError, struct.error, ...); all are the bag's.
         raise InputError(path, f"damaged bag ({_first_line(exc)})") from None
 
 
