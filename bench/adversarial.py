@@ -9,11 +9,12 @@ where a user would meet them, and sorts every outcome into one of:
 - traceback: any other exception, an internal error, more than one line, a wrong exit status;
 - code executed: a checkpoint ran a command.
 
-    python bench/adversarial.py [--families mcap,convert,checkpoints,outputs] [--verbose]
+    python bench/adversarial.py [--families mcap,convert,bags,checkpoints,outputs] [--verbose]
 
 Families: `mcap` (truncations every 5 % and 12 single-bit flips per region of a recording, read by
 `Recording` as `damaged='error'` and `'skip'`, by `vfdata info` and `vfdata check`), `convert` (the raw
-folder and bag corpus of tests/test_convert_corpus.py), `checkpoints` (damaged and malicious
+folder and bag corpus of tests/test_convert_corpus.py), `bags` (truncations every 5 % and bit flips of
+ROS 1, ROS 1 lz4, ROS 2 sqlite and ROS 2 MCAP bags, through `vfdata convert`), `checkpoints` (damaged and malicious
 checkpoints through `vfdata predict --ckpt` and `train.py test --ckpt_path`), `outputs` (outputs that
 are inputs, SIGTERM, two converts to one output, stale temporaries; these run subprocesses).
 """
@@ -141,6 +142,67 @@ def convert_family(tmp: Path, verbose: bool) -> Counter:
     return counts
 
 
+# -- damaged bags -----------------------------------------------------------------------------------
+def bags_family(tmp: Path, verbose: bool) -> Counter:
+    """Truncations every 5 % and 15 single-bit flips of each storage; a conversion must give the
+    original's values or one line. ROS 1, sqlite and rosbags' MCAP have no checksums over the
+    messages: a flip inside a value there cannot be noticed by anyone (counted apart)."""
+    import random
+
+    import numpy as np
+    from bagfixtures import BagSpec, write_bag
+    from rosbags.rosbag2 import StoragePlugin
+    from test_bags import _rewrite_mcap_bag
+
+    from vfdata.recording import Recording
+
+    def view(path: Path):
+        rec = Recording.open(path)
+        return rec.num_frames, rec.force.times_ns.tolist(), np.round(rec.force.wrench, 9).tolist()
+
+    counts: Counter = Counter()
+    storages = {"ROS 1": (BagSpec(frames=8), False), "ROS 1 lz4": (BagSpec(frames=8, lz4=True), False),
+                "ROS 2 sqlite": (BagSpec(ros2=True, frames=8), False),
+                "ROS 2 MCAP (rosbags, no CRC)": (BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=8), False),
+                "ROS 2 MCAP (CRCs)": (BagSpec(ros2=True, storage=StoragePlugin.MCAP, frames=8), True)}
+    for i, (label, (spec, crcs)) in enumerate(storages.items()):
+        src = tmp / f"bag{i}" / ("bag" if spec.ros2 else "x.bag")
+        src.parent.mkdir()
+        write_bag(src, spec)
+        data_file = src if src.is_file() else next(p for p in src.iterdir() if p.suffix in (".mcap", ".db3"))
+        if crcs:
+            _rewrite_mcap_bag(data_file)
+        ref = src.parent / "ref.mcap"
+        assert cli(vfdata_main, ["convert", "--quiet", "--format", "png", str(src), str(ref)])[0] == 0
+        reference = view(ref)
+        pristine = data_file.read_bytes()
+        rng = random.Random(i)
+        cases = [(f"truncated to {p}%", pristine[:len(pristine) * p // 100]) for p in range(5, 100, 5)]
+        for _ in range(15):
+            flipped = bytearray(pristine)
+            at = rng.randrange(len(flipped))
+            flipped[at] ^= 1 << rng.randrange(8)
+            cases.append((f"bit flip at {at}", bytes(flipped)))
+        for name, data in cases:
+            data_file.write_bytes(data)
+            before = digest(src)
+            out = src.parent / "out.mcap"
+            code, err = cli(vfdata_main, ["convert", "--quiet", "--format", "png", "--overwrite", str(src), str(out)])
+            if digest(src) != before:
+                verdict = "modified input"
+            elif code == 0:
+                verdict = "clean" if view(out) == reference else "silent corruption"
+                if verdict != "clean" and not crcs:
+                    counts[f"  (silent, in a {label} bag: the format has no checksum to notice it)"] += 1
+            else:
+                verdict = "clean" if one_line_error(code, err, str(src)) else "traceback"
+            counts[verdict] += 1
+            if verbose and verdict != "clean":
+                print(f"  bag {label} {name}: {verdict}: {err[:300]}")
+        data_file.write_bytes(pristine)
+    return counts
+
+
 # -- checkpoints -------------------------------------------------------------------------------------
 def checkpoint_family(tmp: Path, verbose: bool) -> Counter:
     import test_train_cli
@@ -248,7 +310,7 @@ def outputs_family(tmp: Path, verbose: bool) -> Counter:
     return counts
 
 
-FAMILIES = {"mcap": mcap_family, "convert": convert_family, "checkpoints": checkpoint_family,
+FAMILIES = {"mcap": mcap_family, "convert": convert_family, "bags": bags_family, "checkpoints": checkpoint_family,
             "outputs": outputs_family}
 
 
