@@ -129,14 +129,21 @@ class PlaneSegmenter(Segmenter):
     """Tissue = what stands between `min_height_mm` and `max_height_mm` above the board (along the
     camera's rays) inside the prompt's box: the largest such region on the first frame, then the one
     overlapping the previous mask most. The board is fitted once, on the first frame's depth outside
-    the box when enough of it lies there (else on the whole frame); the camera must not move. Needs
+    the box when enough of it lies there (else on the whole frame); the camera must not move. A frame
+    whose board outside the box no longer lies on that plane (under `board_share` of the first frame's
+    share of pixels on it: a glitched depth frame, a moved camera) gets an empty mask, so the cloud is
+    empty and the trackers hold their points as not visible; `glitched_frames` lists them. Needs
     depth; the image is not used (so a colour view that is not registered to the depth does no harm)."""
 
     name = "plane"
 
     def __init__(self, min_height_mm: float = 6.0, max_height_mm: float = 150.0, tolerance_mm: float = 3.0,
-                 open_px: int = 1, seed: int = 0):
+                 open_px: int = 1, board_share: float = 0.5, seed: int = 0):
         self.min_height_mm, self.max_height_mm = float(min_height_mm), float(max_height_mm)
+        self.board_share = float(board_share)
+        self.glitched_frames: list[int] = []
+        self._frame = 0
+        self._first_share = 0.0
         self.tolerance_mm, self.open_px, self.seed = float(tolerance_mm), int(open_px), int(seed)
         self.plane: InverseDepthPlane | None = None
         self._box: np.ndarray | None = None
@@ -154,6 +161,9 @@ class PlaneSegmenter(Segmenter):
         outside = ~self._box & np.isfinite(depth_mm)
         exclude = self._box if outside.sum() >= max(MIN_PLANE_PIXELS, 0.1 * h * w) else None
         self.plane = fit_board_plane(depth_mm, exclude, self.tolerance_mm, seed=self.seed)
+        self._outside = ~self._box if exclude is not None else np.ones((h, w), bool)
+        self._first_share = self._share_on_board(depth_mm)
+        self.glitched_frames, self._frame = [], 0
         self._previous = None
         mask = self._mask(depth_mm)
         if prompt.positive:
@@ -167,8 +177,21 @@ class PlaneSegmenter(Segmenter):
     def track(self, image: np.ndarray, depth_mm: np.ndarray | None = None) -> np.ndarray:
         if self.plane is None or depth_mm is None:
             raise InputError("segment plane", "track before start, or no depth image")
+        self._frame += 1
+        if self._share_on_board(depth_mm) < self.board_share * self._first_share:
+            self.glitched_frames.append(self._frame)
+            return np.zeros(depth_mm.shape, bool)
         self._previous = self._mask(depth_mm)
         return self._previous
+
+    def _share_on_board(self, depth_mm: np.ndarray) -> float:
+        """Share of the valid pixels outside the box within the tolerance of the first frame's board."""
+        valid = self._outside & np.isfinite(depth_mm)
+        if not valid.any():
+            return 0.0
+        board = self.plane.depth_mm(depth_mm.shape)
+        with np.errstate(invalid="ignore"):
+            return float((np.abs(board[valid] - depth_mm[valid]) <= self.tolerance_mm).mean())
 
     def _mask(self, depth_mm: np.ndarray) -> np.ndarray:
         height = self.plane.depth_mm(depth_mm.shape) - depth_mm
@@ -182,4 +205,5 @@ class PlaneSegmenter(Segmenter):
     def parameters(self) -> dict:
         plane = None if self.plane is None else [self.plane.a, self.plane.b, self.plane.c]
         return {"backend": self.name, "min_height_mm": self.min_height_mm, "max_height_mm": self.max_height_mm,
-                "tolerance_mm": self.tolerance_mm, "open_px": self.open_px, "inverse_depth_plane": plane}
+                "tolerance_mm": self.tolerance_mm, "open_px": self.open_px, "board_share": self.board_share,
+                "inverse_depth_plane": plane, "glitched_frames": list(self.glitched_frames)}

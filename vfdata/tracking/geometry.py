@@ -8,6 +8,7 @@ started from the previous frame's network and optimiser state, on
     lambda_chamfer * Chamfer(visible points -> current tissue cloud)      (stay on the surface)
   + lambda_ref     * LLR(neighbours and weights of the reference points)  (keep the reference's local shape)
   + lambda_prev    * LLR(neighbours and weights of the previous frame)    (keep the last frame's local shape)
+  + lambda_anchor  * mean(|point - reference point|^2)                    (optional, default 0: stay put)
 
 Chamfer is the mean squared distance (mm^2) of each visible point to its nearest cloud point; the
 nearest point comes from a KD-tree built once per frame and is re-queried every iteration as the
@@ -69,6 +70,10 @@ class TrackerOptions:
     lambda_chamfer: float = 1.0
     lambda_ref: float = 100.0
     lambda_prev: float = 100.0
+    # Pull of each point towards its reference position (0: off). For tissue that stays in place and
+    # only dents (an organ on a board), it keeps the points from sliding along the surface over
+    # hundreds of frames, or after frames with no tissue seen.
+    lambda_anchor: float = 0.0
     lambda_flow: float = 10.0  # geometry+ only
     iterations: int = 10  # Adam steps per frame
     learning_rate: float = 1e-3
@@ -143,6 +148,10 @@ class GeometryTracker:
 
         # The LLR terms are quadratic in the points: keep the reference's part as a matrix (see _llr_quadratic).
         self._ref_matrix, self._ref_offset = self._llr_quadratic(self.reference, opt.lambda_ref)
+        if opt.lambda_anchor > 0:  # weight * mean_i |p_i - reference_i|^2: gradient (2 weight / n) (p - reference)
+            anchor = 2.0 * opt.lambda_anchor / len(self.reference)
+            self._ref_matrix = self._ref_matrix + anchor * np.eye(len(self.reference))
+            self._ref_offset = self._ref_offset + anchor * self.reference
         self._prev_image = None if opt.reference_image is None else to_gray(opt.reference_image)
         self._reference_image = self._prev_image
         self._prev_visible = np.ones(len(self.reference), dtype=bool)

@@ -12,6 +12,7 @@ import numpy as np
 
 from vfdata import metrics as tracking_metrics
 from vfdata.manifest import ManifestEntry, load_manifest
+from vfdata.processing import frame_image
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
@@ -210,7 +211,7 @@ def stage_rates(entries: list[ManifestEntry], tracker: str) -> dict[str, float]:
 def first_frame(entry: ManifestEntry, tracker: str) -> np.ndarray:
     """`first_frame_preview` of a processed recording, drawn from its files."""
     with Recording.open(entry.mcap) as rec:
-        image, camera = rec.rectified_frame(0).left, rec.camera
+        image, camera = frame_image(rec, 0), rec.camera
     with DerivedRecording.open(derived_path(entry, tracker)) as derived:
         tracks = derived.tracks()
         return first_frame_preview(image, derived.mask(0), camera, tracks.frame, tracks.points_camera_mm(0))
@@ -260,7 +261,7 @@ def _tracked_points_figure(out: Path, test: ManifestEntry, trackers: list[str]) 
         peaks = tracking_metrics.force_peaks(np.nan_to_num(force))
         peaks = peaks[peaks < limit]
         peak = int(peaks[np.argmax(np.linalg.norm(force[peaks], axis=1))]) if len(peaks) else limit - 1
-        image, camera, mask = rec.rectified_frame(peak).left, rec.camera, derived.mask(peak)
+        image, camera, mask = frame_image(rec, peak), rec.camera, derived.mask(peak)
     shown = {}
     for tracker in trackers:
         if derived_path(test, tracker).is_file():
