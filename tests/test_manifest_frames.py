@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import yaml
 
@@ -52,3 +53,17 @@ def test_the_datamodule_checks_the_gap_with_its_clip_length(tmp_path):
     ForceDataModule(manifest.path, spec=ClipSpec(clip_frames=16))
     with pytest.raises(InputError, match=r"guard gap of a clip's length \(32 frames\)"):
         ForceDataModule(manifest.path, spec=ClipSpec(clip_frames=32))
+
+
+def test_random_split_of_the_datamodule_is_a_seeded_partition(tmp_path):
+    from vfdata.clips import ClipSpec
+    from vfdata.clips.datamodule import ForceDataModule, random_parts
+
+    parts = random_parts(100, 0.2)
+    assert [len(parts[s]) for s in ("train", "val", "test")] == [72, 8, 20]
+    assert sorted(np.concatenate(list(parts.values())).tolist()) == list(range(100))
+    assert all((random_parts(100, 0.2)[s] == parts[s]).all() for s in parts)
+    manifest = _manifest(tmp_path, [("train", [0, 700]), ("val", [716, 800])])
+    assert ForceDataModule(manifest.path, spec=ClipSpec(), random_split=0.2).hparams["random_split"] == 0.2
+    with pytest.raises(InputError, match="random_split"):
+        ForceDataModule(manifest.path, spec=ClipSpec(), random_split=1.0)

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import lightning.pytorch as L
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
@@ -16,6 +17,17 @@ from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
 
 DEFAULT_SPEC = ClipSpec()
+
+
+def random_parts(count: int, test_share: float, val_share: float = 0.1, seed: int = 0) -> dict[str, np.ndarray]:
+    """A random split of `count` samples (frames or clips), as code that splits frames at random does:
+    one seeded shuffle, `test_share` of them for test, `val_share` of the rest for validation, the
+    remainder for training; each part's indices sorted."""
+    order = np.random.default_rng(seed).permutation(count)
+    n_test = int(round(test_share * count))
+    n_val = int(round(val_share * (count - n_test)))
+    return {"test": np.sort(order[:n_test]), "val": np.sort(order[n_test:n_test + n_val]),
+            "train": np.sort(order[n_test + n_val:])}
 
 
 class ForceDataModule(L.LightningDataModule):
@@ -30,6 +42,10 @@ class ForceDataModule(L.LightningDataModule):
         cache_dir: folder for decoded arrays, reused by later runs (None: no cache).
         predict_split: the split `trainer.predict` runs over.
         progress: progress bars while decoding.
+        random_split: 0 (default) splits as the manifest says; a share such as 0.2 pools the clips of
+            every entry and draws that share of them at random for test (and a tenth of the rest for
+            validation), as code that splits frames at random does. Neighbouring clips then land on
+            both sides, so it flatters: for comparison with such results only (docs/results.md).
 
     The training split's statistics are `normalisation` (for `ForceRegressor`), and the spec with
     the measured frame rate is saved with every checkpoint (`datamodule_hyper_parameters["spec"]`),
@@ -38,7 +54,7 @@ class ForceDataModule(L.LightningDataModule):
 
     def __init__(self, manifest: str, spec: ClipSpec = DEFAULT_SPEC, batch_size: int = 32, num_workers: int = 0,
                  cache_dir: str | None = None, predict_split: Literal["train", "val", "test"] = "test",
-                 progress: bool = True):
+                 progress: bool = True, random_split: float = 0.0):
         super().__init__()
         if not isinstance(manifest, (str, Path)):
             raise TypeError(f"ForceDataModule takes the path of a manifest file, not {type(manifest).__name__}")
@@ -49,6 +65,9 @@ class ForceDataModule(L.LightningDataModule):
         self.spec = spec
         self.batch_size, self.num_workers, self.cache_dir = batch_size, num_workers, cache_dir
         self.predict_split, self.progress = predict_split, progress
+        if not 0.0 <= random_split < 1.0:
+            raise InputError(self.manifest.path, f"random_split must be a share in [0, 1), not {random_split}")
+        self.random_split = float(random_split)
         self.datasets: dict[str, ForceClipDataset] = {}
         self.normalisation: dict[str, torch.Tensor] | None = None
         self._save_spec()
@@ -62,13 +81,16 @@ class ForceDataModule(L.LightningDataModule):
         # Plain values only: checkpoints load with torch.load(weights_only=True).
         self.save_hyperparameters({
             "manifest": str(self.manifest.path), "spec": self.spec.to_dict(), "batch_size": self.batch_size,
-            "num_workers": self.num_workers, "cache_dir": self.cache_dir, "predict_split": self.predict_split})
+            "num_workers": self.num_workers, "cache_dir": self.cache_dir, "predict_split": self.predict_split,
+            "random_split": self.random_split})
 
     @property
     def entries(self):
         return self.manifest.entries
 
     def dataset(self, split: str) -> ForceClipDataset:
+        if split not in self.datasets and self.random_split:
+            self.datasets[split] = self._random_part(split)
         if split not in self.datasets:
             data = ForceClipDataset(self.manifest.split(split), self.spec, self.cache_dir, self.progress,
                                     augment=split == "train")
@@ -77,6 +99,17 @@ class ForceDataModule(L.LightningDataModule):
                                                      f"({self.spec.clip_frames} frames)")
             self.datasets[split] = data
         return self.datasets[split]
+
+    def _random_part(self, split: str) -> ForceClipDataset:
+        """The clips of every entry, `split`'s part of one seeded shuffle (test: `random_split` of
+        them, val: a tenth of the rest, train: the remainder)."""
+        data = ForceClipDataset(list(self.manifest.entries), self.spec, self.cache_dir, self.progress,
+                                augment=split == "train")
+        part = random_parts(len(data.index), self.random_split)[split]
+        if len(part) == 0:
+            raise InputError(self.manifest.path, f"random_split {self.random_split} leaves no '{split}' clips")
+        data.index = data.index[part]
+        return data
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit", "validate"):

@@ -40,4 +40,5 @@ def forward_backward_error(clouds_mm: Sequence[np.ndarray], masks: Sequence[np.n
     error = np.linalg.norm(returned - start, axis=1)
     moved = np.linalg.norm(end - start, axis=1)
     return {"median_mm": float(np.median(error)), "p95_mm": float(np.percentile(error, 95)),
-            "forward_displacement_median_mm": float(np.median(moved)), "frames": len(clouds_mm)}
+            "forward_displacement_median_mm": float(np.median(moved)),
+            "forward_displacement_p95_mm": float(np.percentile(moved, 95)), "frames": len(clouds_mm)}

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vfdata.clips.datamodule import random_parts
 from vfmodels.metrics import force_metrics
 
 ALPHAS = tuple(10.0 ** np.arange(-2, 7))
@@ -92,11 +93,7 @@ def temporal_indices(frames: dict[str, tuple[int, int]]) -> dict[str, np.ndarray
 def random_indices(count: int, test_share: float = 0.2, val_share: float = 0.1, seed: int = 0) -> dict[str, np.ndarray]:
     """The original code's split: frames shuffled, `test_share` of them for test; `val_share` of the
     rest for choosing ridge strengths. Neighbouring frames (33 ms apart) land on both sides."""
-    order = np.random.default_rng(seed).permutation(count)
-    n_test = int(round(test_share * count))
-    n_val = int(round(val_share * (count - n_test)))
-    return {"test": np.sort(order[:n_test]), "val": np.sort(order[n_test:n_test + n_val]),
-            "train": np.sort(order[n_test + n_val:])}
+    return random_parts(count, test_share, val_share, seed)
 
 
 def run_baselines(features: dict[str, np.ndarray], force_n: np.ndarray,
