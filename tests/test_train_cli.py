@@ -252,3 +252,29 @@ def test_run_eta():
     assert run_eta(15.0, 1, 0.5, 4) == pytest.approx(25.0)
     assert run_eta(0.0, 0, 0.0, 4) is None
     assert [format_seconds(s) for s in (7.4, 125, 3725)] == ["7s", "2m05s", "1h02m"]
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--data.spec.frame", "objct"], "--data.spec.frame"),
+    (["--data.batch_sizee", "3"], "--data.batch_sizee"),
+    (["--model.lr", "abc"], "--model.lr"),
+])
+def test_option_errors_are_one_line_naming_the_option(argv, option, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    with pytest.raises(SystemExit) as exit_info:
+        train.main(["fit", f"--config={ROOT / 'configs' / 'proposed.yaml'}", *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and err[0].startswith(f"train.py fit: error: {option}:"), err
+    assert len(err) == 2 and "Traceback" not in err[0]  # the line, then where the help is
+
+
+def test_help_describes_the_project_and_finds_the_data_options(capsys, monkeypatch):
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    for argv in (["--help"], ["fit", "--data.help", "ForceDataModule"], ["fit", "--model.model.help",
+                                                                          "SetTransformerLSTM"]):
+        with pytest.raises(SystemExit) as exit_info:
+            train.main(argv)
+        assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert "VisionForce" in out and "Lightning Trainer command line tool" not in out
+    assert "--data.spec.frame {object,camera}" in out and "--model.model.in_features" in out

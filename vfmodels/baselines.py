@@ -13,6 +13,7 @@ which, and training logs it.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -62,12 +63,18 @@ class RGBResNet3D(nn.Module):
     - "batch": torchvision's BatchNorm, batch statistics in training and running averages in
       evaluation. Those averages trail the weights by ~10 optimiser steps (momentum 0.1), so an
       evaluation after a few hundred steps can be off by orders of magnitude.
+
+    Args:
+        weights_path: a local r3d_18 checkpoint (Kinetics-400); None: random initialisation.
+        head_hidden: hidden units of each force head.
+        norm: group, frozen or batch (see above); None: frozen with weights, else group.
     """
 
     input_key = "images"
     channel_dim = 2
 
-    def __init__(self, weights_path: str | None = None, head_hidden: int = 64, norm: str | None = None):
+    def __init__(self, weights_path: str | None = None, head_hidden: int = 64,
+                 norm: Literal["group", "frozen", "batch"] | None = None):
         super().__init__()
         from torchvision.models.video import r3d_18
 
@@ -139,6 +146,11 @@ class DepthViTLSTM(nn.Module):
 
     H and W must equal `img_size`. Pretrained RGB ViT weights are adapted to one channel by summing
     the patch-embedding filters over RGB, and the position embedding is resampled to `img_size`.
+
+    Args:
+        weights_path: a local ViT-Small checkpoint; None: random initialisation.
+        img_size: side of the square depth images (ClipSpec.image_size), pixels.
+        lstm_hidden: hidden size of the causal LSTM over the clip.
     """
 
     input_key = "depth"

@@ -19,8 +19,14 @@ DEFAULT_PATIENCE = 10  # epochs without a better validation loss
 class ValidationEarlyStopping(EarlyStopping):
     def __init__(self, monitor: str | None = "val/loss", patience: int | None = DEFAULT_PATIENCE,
                  min_delta: float = 0.0, mode: str = "min") -> None:
-        """`patience`: epochs without improvement of `monitor` (by more than `min_delta`) before training
-        stops; None (or no monitor) trains every epoch."""
+        """
+        Args:
+            monitor: the metric (set from `checkpoint.monitor`; None: no early stopping).
+            patience: epochs without a better `monitor` before training stops; None: every epoch
+                (the paper's protocol).
+            min_delta: the least change that counts as better.
+            mode: min or max (set from `checkpoint.mode`).
+        """
         super().__init__(monitor=monitor or "", patience=patience or 0, min_delta=min_delta, mode=mode,
                          strict=False)
         self.enabled = bool(monitor) and patience is not None

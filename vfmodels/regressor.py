@@ -48,6 +48,16 @@ class ForceRegressor(L.LightningModule):
     the XZ plane, 2n views in all; each view's tokens are turned, and its forces turned back. Only for
     token inputs made of 3-vectors in the object frame (`frame: object`); the mirror alone (n = 1) is
     exact for a tube hanging under gravity, the turns need a model trained with `rotate_augment`.
+
+    Args:
+        model: the network (`vfmodels.SetTransformerLSTM`, `RGBResNet3D` or `DepthViTLSTM`; a class_path
+            and init_args in a config; `--model.model.help SetTransformerLSTM` lists its options).
+        lr: AdamW learning rate.
+        weight_decay: AdamW weight decay.
+        compile_model: run the network through torch.compile (faster on GPUs, slow to start).
+        symmetry_turns: outside training, average each prediction over this many turns about the
+            object's Z axis, each with its XZ mirror (0: off; 1: the mirror only; token inputs in the
+            object frame only).
     """
 
     def __init__(self, model: nn.Module, lr: float = 5e-4, weight_decay: float = 1e-3, compile_model: bool = False,

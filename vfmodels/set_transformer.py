@@ -112,6 +112,16 @@ class SetTransformerLSTM(nn.Module):
     Invalid points (not visible, or padding) are zeroed and masked as attention keys. A frame with no
     valid point at all is encoded as a set of all-zero tokens (a fixed "nothing visible" embedding)
     rather than an attention over nothing, which is undefined.
+
+    Args:
+        in_features: channels per point token (C): 6 for position + velocity, 3 for one of them, 9 for
+            the reference/polar features (ClipSpec.features).
+        dim: width of the set encoder.
+        heads: attention heads.
+        inducing_points: inducing points per ISAB.
+        isab_blocks: ISAB blocks per frame.
+        layer_norm: layer norm in the attention blocks.
+        lstm_hidden: hidden size of the causal LSTM over the clip.
     """
 
     input_key = "tokens"

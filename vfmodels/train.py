@@ -25,9 +25,11 @@ from lightning.pytorch import LightningDataModule
 from lightning.pytorch.callbacks import ProgressBar
 from lightning.pytorch.cli import LightningCLI
 
+from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--data.help ForceDataModule` resolves
 from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
 from vfmodels.checkpoint import ResumableCheckpoint
+from vfmodels.cli_errors import ForceArgumentParser
 from vfmodels.early_stopping import ValidationEarlyStopping
 from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
@@ -113,6 +115,8 @@ class ForceCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser) -> None:
         parser.description = DESCRIPTION
+        parser.epilog = ("The data and network options: `--data.help ForceDataModule` (and the ClipSpec under "
+                         "--data.spec), `--model.model.help SetTransformerLSTM` (or RGBResNet3D, DepthViTLSTM).")
         parser.add_argument("--threads", type=PositiveInt | None, default=DEFAULT_THREADS,
                             help=THREADS_HELP + "; null leaves torch's default")
         # Keep the checkpoint with the lowest validation loss, and last.ckpt after every epoch for resuming.
@@ -198,7 +202,8 @@ class ForceCLI(LightningCLI):
 def make_cli(args: list[str] | None = None, run: bool = True) -> ForceCLI:
     quiet_lightning()
     return ForceCLI(ForceRegressor, LightningDataModule, subclass_mode_data=True,
-                    save_config_kwargs={"overwrite": True}, argv=args, run=run)
+                    save_config_kwargs={"overwrite": True}, argv=args, run=run, parser_class=ForceArgumentParser,
+                    parser_kwargs={"description": DESCRIPTION})
 
 
 def _named_error(exc: BaseException) -> VisionForceError | None:
