@@ -8,6 +8,13 @@ frames/s per stage, the end-to-end rate and the per-frame latency (median, p95).
 compressed images stands in for the camera driver and is timed separately, not in the total.
 Target (issue 7): >= 10 frames/s end to end on 2 CPU cores.
 
+Then the live session of `vfdata live` (issue 23): the recording replayed at its own rate through the
+estimator to the Foxglove server with a client subscribed to /force/estimate, with the live default
+(`LIVE_DEPTH_ROI_MARGIN_PX`), serial and pipelined: the rate forces reach the client and the latency
+from the arrival of the frame each force waited for to its sending (median, p95); beside it the
+offline rate (`vfmodels.predict.predict_recording` on the same frames, no video). Target (issue 23):
+30 frames/s on 2 cores, median latency <= 70 ms, p95 <= 100 ms.
+
 Without --recording a short `mini` recording is simulated and converted into --workdir. Without
 --ckpt a freshly initialised proposed model is used: its cost does not depend on its weights.
 """
@@ -63,6 +70,10 @@ def main() -> int:
     parser.add_argument("--window", type=int, default=16, help="LSTM window (0: carried state)")
     parser.add_argument("--depth", default="sgbm")
     parser.add_argument("--segment", default="colortrack")
+    parser.add_argument("--depth-roi-margin", type=int, default=24,
+                        help="depth region of interest of the streaming runs, px (default 24: the live default; "
+                             "0: whole image)")
+    parser.add_argument("--no-live", action="store_true", help="skip the live session and the offline rate")
     parser.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "vf_bench_pipeline")
     args = parser.parse_args()
 
@@ -93,7 +104,7 @@ def main() -> int:
             camera,
             baseline_mm,
             prompt,
-            EngineOptions(depth=args.depth, segment=args.segment),
+            EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
             up=up,
             pipelined=pipelined,
             window=None if args.window == 0 else args.window,
@@ -119,7 +130,8 @@ def main() -> int:
     load = os.getloadavg()[0]
     print(
         f"recording {recording} ({camera.width}x{camera.height}), {n} frames, {args.threads} thread(s) per "
-        f"stage, {os.cpu_count()} CPU(s), load average {load:.1f}, torch {torch.__version__}"
+        f"stage, {os.cpu_count()} CPU(s), load average {load:.1f}, torch {torch.__version__}, depth region of "
+        f"interest {args.depth_roi_margin} px"
     )
     print(
         "CPU ms: CPU time of the thread that ran the stage (= wall time on an idle core); wall ms also "
@@ -157,7 +169,77 @@ def main() -> int:
         f"median {np.median(latency_p):.1f} ms; CPU ms per frame "
         + ", ".join(f"{k} {v:.1f}" for k, v in cpu_p.items())
     )
+    if not args.no_live:
+        live_and_offline(recording, ckpt, n, args)
     return 0
+
+
+def live_and_offline(recording: Path, ckpt: Path, frames: int, args) -> None:
+    import asyncio
+    import threading
+
+    from vfdata.engine import EngineOptions
+    from vfdata.foxglove_server import FoxgloveServer
+    from vfdata.processing import ProcessOptions
+    from vfdata.recording import layout
+    from vfdata.sources import RecordingReplay, recording_defaults
+    from vfmodels.live import StreamingForceEstimator
+    from vfmodels.live_session import LiveSession
+    from vfmodels.predict import predict_recording
+
+    def client(url: str, received: list) -> None:
+        import json
+
+        import websockets
+
+        async def run():
+            async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"]) as ws:
+                async for message in ws:
+                    if isinstance(message, str):
+                        op = json.loads(message)
+                        if op["op"] == "advertise":
+                            ids = [c["id"] for c in op["channels"] if c["topic"] == layout.FORCE_ESTIMATE]
+                            await ws.send(json.dumps({"op": "subscribe",
+                                                      "subscriptions": [{"id": 1, "channelId": ids[0]}]}))
+                    else:
+                        received.append(time.perf_counter())
+
+        asyncio.run(run())
+
+    print(f"\nlive session (vfdata live): {frames} frames replayed at their own rate, depth region of interest "
+          f"{args.depth_roi_margin} px, a client subscribed to {layout.FORCE_ESTIMATE}")
+    for pipelined, like_camera in ((False, False), (True, False), (False, True), (True, True)):
+        source = RecordingReplay(recording, speed=1.0, max_frames=frames, like_camera=like_camera)
+        prompt, up = recording_defaults(source, None)
+        estimator = StreamingForceEstimator(
+            ckpt, source.camera, source.baseline_mm, prompt,
+            EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
+            up=up, pipelined=pipelined, window=None if args.window == 0 else args.window)
+        server = FoxgloveServer(port=0)
+        received: list[float] = []
+        thread = threading.Thread(target=client, args=(server.url(), received), daemon=True)
+        thread.start()
+        server.wait_for_subscriber(layout.FORCE_ESTIMATE, 10.0)
+        stats = LiveSession(source, estimator, server).run()
+        estimator.close()
+        server.close()
+        source.close()
+        thread.join(timeout=5)
+        latency = np.array(stats.latency_ms[3:])  # the first frames fix the object frame and the points
+        span_s = (stats.forces[-1][0] - stats.forces[0][0]) / 1e9
+        mode = ("pipelined" if pipelined else "serial") + (", like a camera" if like_camera else ", every frame")
+        print(f"  {mode:26s}: {stats.estimates} forces ({len(received)} received, {stats.dropped} frames skipped) "
+              f"at {stats.rate_fps:.1f} frames/s (the recording's {(len(stats.forces) - 1) / span_s:.1f}); "
+              f"latency median {np.median(latency):.1f} ms, p95 {np.percentile(latency, 95):.1f} ms "
+              f"(load average {os.getloadavg()[0]:.1f})")
+    out = args.workdir / "offline"
+    started = time.perf_counter()
+    result = predict_recording(recording, ckpt, out, ProcessOptions(depth=args.depth, segment=args.segment,
+                                                                    max_frames=frames),
+                               video=False, progress=False, overwrite=True, reuse_processed=False)
+    offline = time.perf_counter() - started
+    print(f"  offline  : vfdata predict on the same {result.frames} frames (whole-image depth, no video): "
+          f"{result.frames / offline:.1f} frames/s wall")
 
 
 if __name__ == "__main__":

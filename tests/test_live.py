@@ -123,7 +123,8 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
 
     cv2.setRNGSeed(0)
     record = tmp_path / "live.mcap"
-    args = _args(recording, ckpt, record=record, wait_for_client=20, speed=1.0)
+    # The whole image's depth, as offline processing (the live default's region of interest: below).
+    args = _args(recording, ckpt, record=record, wait_for_client=20, speed=1.0, depth_roi_margin=0)
     code, client = _serve(args, (layout.FORCE_ESTIMATE, layout.TRACKING_POINTS))
     assert code == 0 and client.closed_cleanly
     channel = client.advertised[layout.FORCE_ESTIMATE]
@@ -230,3 +231,63 @@ def test_a_side_by_side_video_source_gives_rectified_pairs(recording, tmp_path):
         VideoStereo(str(video), None, raw / "calibration.yaml")
     with pytest.raises(InputError, match="cannot be opened"):
         VideoStereo(str(tmp_path / "none.avi"), None, raw / "calibration.yaml", side_by_side=True)
+
+
+def test_depth_roi_is_the_mask_box_grown_and_aligned():
+    from vfdata.engine import depth_roi
+
+    mask = np.zeros((100, 200), bool)
+    mask[31:60, 81:120] = True
+    assert depth_roi(mask, 10, 40) == (20, 70, 70, 130, 30)  # even starts; the match band to the left
+    assert depth_roi(mask, 100, 40) == (0, 100, 0, 200, 0)  # clipped to the image
+    assert depth_roi(mask, 10, None)[4] == 0  # unknown disparity range: matched from column 0
+    assert depth_roi(np.zeros((100, 200), bool), 10, 40) == (0, 100, 0, 200, 0)
+
+
+def test_the_depth_region_of_interest_keeps_the_tissue_depth(recording):
+    from vfdata.engine import EngineOptions, FrameEngine, depth_roi
+    from vfdata.processing import camera_up, recording_prompt
+
+    with Recording.open(recording) as rec:
+        frames = [rec.rectified_frame(i) for i in range(3)]
+        prompt, up = recording_prompt(rec, recording, None), camera_up(rec)
+        camera, baseline = rec.camera, rec.stereo.baseline_mm
+    runs = {}
+    for margin in (0, 24):
+        cv2.setRNGSeed(0)
+        engine = FrameEngine(camera, baseline, prompt, EngineOptions(depth_roi_margin_px=margin), up=up)
+        runs[margin] = [engine.step(i, f.stamp_ns, f.left, f.right) for i, f in enumerate(frames)]
+    whole, roi = runs[0][2], runs[24][2]
+    y0, y1, x0, x1, _ = depth_roi(runs[24][1].mask, 24, None)
+    outside = np.ones(roi.depth_mm.shape, bool)
+    outside[y0:y1, x0:x1] = False
+    assert np.isnan(roi.depth_mm[outside]).all() and np.isfinite(roi.depth_mm[~outside]).mean() > 0.99
+    tissue = whole.mask & roi.mask
+    assert tissue.sum() > 0.95 * whole.mask.sum()
+    assert np.nanmedian(np.abs(roi.depth_mm - whole.depth_mm)[tissue]) < 0.2  # mm
+    assert np.linalg.norm(roi.points_mm - whole.points_mm, axis=1).mean() < 1.0  # mm
+
+
+def test_a_replay_at_its_rate_keeps_every_frame_or_skips_like_a_camera(recording):
+    import time
+
+    from vfdata.sources import RecordingReplay
+
+    for like_camera in (False, True):
+        source = RecordingReplay(recording, speed=1.0, like_camera=like_camera)
+        taken, lag = [], []
+        try:
+            for frame in source:
+                taken.append(frame)
+                lag.append(time.perf_counter() - frame.arrival_s)  # arrival: when the frame was due
+                time.sleep(0.1)  # a consumer at 10 frames/s, slower than the recording's 30
+        finally:
+            source.close()
+        indices = [f.index for f in taken]
+        assert indices == sorted(indices) and len(taken) + source.dropped == FRAMES
+        if like_camera:
+            assert source.dropped > 0 and indices[-1] == FRAMES - 1
+        else:
+            assert indices == list(range(FRAMES)) and source.dropped == 0
+            assert taken[-1].arrival_s - taken[0].arrival_s == pytest.approx((FRAMES - 1) / 30.0, abs=0.02)
+            assert min(lag) >= 0 and lag[-1] - lag[1] > 0.3  # falling behind, ~67 ms a frame: it shows

@@ -57,6 +57,10 @@ class EngineOptions:
     # "board" (a flat organ on a board: normal = up, docs/reconstruction.md) or "camera".
     # "auto": tissue for stereo recordings, board for RGB-D ones (vfdata.processing).
     object_frame: str = "auto"
+    # Depth only where the tissue can be: the box of the previous frame's mask grown by this many
+    # pixels each way (0: the whole image, always for the first frame). Depth elsewhere is NaN. A
+    # live option: its rate and accuracy against the whole image are in docs/live.md.
+    depth_roi_margin_px: int = 0
 
 
 OBJECT_FRAMES = ("auto", "tissue", "board", "camera")
@@ -127,6 +131,24 @@ def recorded_depths(ground_truth: Path) -> Iterator[np.ndarray]:
         yield depth
 
 
+def depth_roi(mask: np.ndarray, margin_px: int, max_disparity_px: int | None) -> tuple[int, int, int, int, int]:
+    """The region whose depth is needed next: the box of `mask` (H, W) grown by `margin_px`, as
+    (y0, y1, x0, x1, xc): rows y0:y1, columns x0:x1, and xc <= x0 where the matched crop starts (a
+    left pixel x matches the right image at x - d, d <= `max_disparity_px`; None: from column 0).
+    Even offsets, so that a half-resolution matcher sees the same pixel grid. The whole image when
+    the mask is empty."""
+    h, w = mask.shape
+    rows, cols = np.any(mask, axis=1), np.any(mask, axis=0)
+    if not rows.any():
+        return 0, h, 0, w, 0
+    y0, y1 = np.flatnonzero(rows)[[0, -1]]
+    x0, x1 = np.flatnonzero(cols)[[0, -1]]
+    y0, x0 = max(0, int(y0) - margin_px) // 2 * 2, max(0, int(x0) - margin_px) // 2 * 2
+    y1, x1 = min(h, int(y1) + 1 + margin_px), min(w, int(x1) + 1 + margin_px)
+    xc = 0 if max_disparity_px is None else max(0, x0 - int(max_disparity_px)) // 2 * 2
+    return y0, y1, x0, x1, xc
+
+
 class FrameEngine:
     """Runs the stages frame after frame (see the module docstring). The first frame fixes the object
     frame (`self.frame`) and starts the tracker; `up` is gravity-up in the left camera frame (from the
@@ -149,6 +171,7 @@ class FrameEngine:
         self.origin_cut = False
         self.tracker: Tracker | None = None
         self.frames = 0
+        self._last_mask: np.ndarray | None = None  # the previous image_stages' mask (the depth's region)
 
     def _depth_options(self) -> dict:
         options = dict(self.options.depth_options)
@@ -193,13 +216,33 @@ class FrameEngine:
         state, so the live estimator may run it for frame t+1 while frame t is tracked."""
         t = self.clock.now()
         if depth_mm is None:
-            depth_mm = self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
+            margin = self.options.depth_roi_margin_px
+            roi = None if first or margin <= 0 or self._last_mask is None else \
+                depth_roi(self._last_mask, margin, self._max_disparity_px())
+            depth_mm = self._depth_in(left, right, roi)
             t = self.clock.add("depth", t)
         mask = self.segmenter.start(left, self.prompt, depth_mm) if first else self.segmenter.track(left, depth_mm)
+        self._last_mask = mask
         t = self.clock.add("mask", t)
         cloud = tissue_cloud(depth_mm, mask, self.camera)
         self.clock.add("cloud", t)
         return ImageStages(depth_mm, mask, cloud)
+
+    def _max_disparity_px(self) -> int | None:
+        return self._depth_options().get("max_disparity") if self.options.depth == "sgbm" else None
+
+    def _depth_in(self, left: np.ndarray, right: np.ndarray, roi: tuple[int, int, int, int, int] | None
+                  ) -> np.ndarray:
+        """Depth (mm) of the whole pair, or of `roi` (`depth_roi`) only: NaN elsewhere."""
+        if roi is None:
+            return self.depth.depth_mm(left, right, self.camera, self.baseline_mm)
+        y0, y1, x0, x1, xc = roi
+        crop = PinholeCamera(self.camera.fx, self.camera.fy, self.camera.cx - xc, self.camera.cy - y0, x1 - xc, y1 - y0)
+        inside = self.depth.depth_mm(np.ascontiguousarray(left[y0:y1, xc:x1]),
+                                     np.ascontiguousarray(right[y0:y1, xc:x1]), crop, self.baseline_mm)
+        depth = np.full(left.shape[:2], np.nan, np.float32)
+        depth[y0:y1, x0:x1] = inside[:, x0 - xc:]
+        return depth
 
     def track(self, index: int, stamp_ns: int, left: np.ndarray, images: ImageStages) -> FrameResult:
         """The frame's tracked points; the first frame also fixes the object frame and the tracker."""

@@ -2,9 +2,10 @@
 arrived, produced by a thread of their own as a camera driver would.
 
 - `RecordingReplay`: a recording MCAP replayed at its own rate (`speed` 1.0; 0 = as fast as the
-  consumer takes them). Frames are never dropped: a consumer slower than the rate falls behind, and
-  each frame's `arrival_s` is the moment the camera would have delivered it, so that lag shows in the
-  latency instead of being hidden.
+  consumer takes them). By default no frame is dropped: a consumer slower than the rate falls behind,
+  and each frame's `arrival_s` is the moment the camera would have delivered it, so that lag shows in
+  the latency instead of being hidden. `like_camera=True` keeps only the newest frame instead, as a
+  camera does: a slower consumer skips frames (`dropped`) and its latency stays that of one frame.
 - `VideoStereo`: two OpenCV video sources (device indices, files or stream URLs) or one side-by-side
   source, rectified with a calibration file (`StereoCalibration`). Like a camera, it keeps only the
   newest pair: a consumer slower than the camera skips frames (`dropped` counts them). Files are
@@ -110,7 +111,8 @@ class _Producer:
 class RecordingReplay:
     """A recording replayed as a live source (see the module docstring)."""
 
-    def __init__(self, path: str | Path, speed: float = 1.0, max_frames: int | None = None):
+    def __init__(self, path: str | Path, speed: float = 1.0, max_frames: int | None = None,
+                 like_camera: bool = False):
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError(self.path, "recording not found")
@@ -125,11 +127,13 @@ class RecordingReplay:
         self.baseline_mm = self.recording.stereo.baseline_mm
         self.speed = float(speed)
         self.frames = self.recording.num_frames if max_frames is None else min(max_frames, self.recording.num_frames)
-        self._producer = _Producer(self._produce, keep_latest=False, name="vf-replay")
+        if like_camera and self.speed == 0:
+            raise InputError(self.path, "a replay like a camera needs a rate: --speed > 0")
+        self._producer = _Producer(self._produce, keep_latest=like_camera, name="vf-replay")
 
     @property
     def dropped(self) -> int:
-        return 0
+        return self._producer.dropped
 
     def _produce(self, stop: threading.Event):
         times = self.recording.frame_times_ns

@@ -32,6 +32,12 @@ from vfdata.recon import Prompt
 from vfmodels.predict import CLIP_FRAMES, load_force_model
 from vfmodels.regressor import ForceRegressor
 
+# The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
+# only in the previous mask's box grown by this many pixels. On the simulated mini recording it cut
+# depth's CPU time ~4x with the same depth error inside the tissue (bench/study_live_depth.py,
+# docs/live.md); offline processing keeps the whole image.
+LIVE_DEPTH_ROI_MARGIN_PX = 24
+
 
 @dataclass
 class ForceEstimate:

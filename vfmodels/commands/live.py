@@ -37,11 +37,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --record file")
     p.add_argument("--speed", type=float, default=1.0,
                    help="replay speed of a recording (default 1: its own rate; 0: as fast as it runs)")
+    p.add_argument("--like-camera", action="store_true",
+                   help="replay a recording as a camera delivers: frames the estimator has no time for are "
+                        "skipped (default: every frame, late if need be)")
     p.add_argument("--wait-for-client", type=float, default=0.0, metavar="SECONDS",
                    help="wait up to SECONDS for a client to subscribe to /force/estimate before starting")
     p.add_argument("--max-frames", type=int, help="stop after N frames")
     p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
     p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
+    p.add_argument("--depth-roi-margin", type=int, default=None, metavar="PX",
+                   help="depth only in the previous frame's tissue box grown by PX pixels (default 24; 0: the "
+                        "whole image, as offline processing)")
     p.add_argument("--window", type=int, default=16,
                    help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
     p.add_argument("--pipelined", action="store_true",
@@ -61,7 +67,8 @@ def open_source(args: argparse.Namespace):
         if args.right or args.side_by_side or args.calibration:
             raise InputError(Path(args.source), "a recording carries its own views and calibration: "
                                                 "--right, --side-by-side and --calibration are for video sources")
-        source = RecordingReplay(args.source, speed=args.speed, max_frames=args.max_frames)
+        source = RecordingReplay(args.source, speed=args.speed, max_frames=args.max_frames,
+                                 like_camera=args.like_camera)
         try:
             prompt, up = recording_defaults(source, args.prompt)
         except BaseException:
@@ -86,18 +93,20 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.recording import layout
     from vfmodels.commands.predict import checkpoint_file
-    from vfmodels.live import StreamingForceEstimator
+    from vfmodels.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
     from vfmodels.live_session import LiveSession
 
     import_foxglove()  # the missing extra is said before anything else is opened
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     ckpt = checkpoint_file(args.ckpt)
+    roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt, up = open_source(args)
     server = None
     try:
         estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt,
-                                            EngineOptions(depth=args.depth, segment=args.segment), up=up,
+                                            EngineOptions(depth=args.depth, segment=args.segment,
+                                                          depth_roi_margin_px=roi), up=up,
                                             window=None if args.window == 0 else args.window,
                                             pipelined=args.pipelined)
         server = FoxgloveServer(args.host, args.port, record=args.record, overwrite=args.overwrite)
