@@ -14,12 +14,17 @@ that name if the session fails)."""
 from __future__ import annotations
 
 import threading
+import time
 from pathlib import Path
 
 from vfdata.errors import OutputError, VisionForceError
 from vfdata.recording import layout
 from vfdata.recording.schemas import schema_text
 from vfdata.recording.writer import McapWriter
+
+# The server sends from its own queues; stopping it drops what is still queued. A subscribed client
+# gets this long to receive the last messages (the flush's forces) before the connection closes.
+DRAIN_S = 0.5
 
 LIVE_TOPICS: dict[str, str] = {
     layout.LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
@@ -119,6 +124,8 @@ class FoxgloveServer:
         if self._closed:
             return None
         self._closed = True
+        if any(self.subscriptions.topics.values()):
+            time.sleep(DRAIN_S)
         for channel in self.channels.values():
             channel.close()
         self.server.stop()
