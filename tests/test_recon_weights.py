@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 from vfdata.errors import InputError  # noqa: E402
 from vfdata.recon import DetectorPrompt, make_depth_estimator, make_segmenter  # noqa: E402
 from vfdata.tracking import load_cotracker  # noqa: E402
-from vfdata.weights import load_weights  # noqa: E402
+from vfdata.weights import load_state_dict, load_weights  # noqa: E402
 
 
 class _MakesADirectory:
@@ -38,6 +38,22 @@ def test_tensors_load(tmp_path):
     torch.save({"model": {"weight": torch.arange(3.0)}}, tmp_path / "ok.pth")
     state = load_weights(tmp_path / "ok.pth", "test checkpoint")
     assert torch.equal(state["model"]["weight"], torch.arange(3.0))
+
+
+@pytest.mark.parametrize("saved", [{"weight": torch.arange(3.0)}, {"model": {"weight": torch.arange(3.0)}},
+                                   {"state_dict": {"module.weight": torch.arange(3.0)}}, {"epoch": 3}])
+def test_state_dict_unwrapped(tmp_path, saved):
+    torch.save(saved, tmp_path / "ok.pth")
+    state = load_state_dict(tmp_path / "ok.pth", "test checkpoint")
+    assert state == {"epoch": 3} if "epoch" in saved else torch.equal(state["weight"], torch.arange(3.0))
+
+
+def test_not_a_state_dict_is_named(tmp_path):
+    torch.save({"model": [torch.zeros(1)]}, tmp_path / "list.pth")
+    with pytest.raises(InputError, match="list.pth: a test checkpoint holds a state dict, not a list"):
+        load_state_dict(tmp_path / "list.pth", "test checkpoint")
+    with pytest.raises(InputError, match="a detector weights file holds a state dict, not a list"):
+        DetectorPrompt(weights=tmp_path / "list.pth")
 
 
 def test_pickled_code_is_refused_without_running(code_checkpoint):

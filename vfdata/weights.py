@@ -4,7 +4,7 @@
 file runs a command). With `weights_only=True` torch's unpickler accepts tensors, containers and plain
 values only, whatever torch's default is in the installed version (it changed in 2.6; pyproject asks
 for torch>=2.4). Every loader of third-party weights (Stereo Any Video, SAM2, the tissue detector,
-CoTracker) goes through `load_weights`, and hands the packages a state dict, never the file.
+CoTracker) goes through `load_state_dict`, and hands the packages a state dict, never the file.
 """
 
 from __future__ import annotations
@@ -45,6 +45,19 @@ def load_weights(path: str | Path, what: str) -> Any:
         raise
     except Exception as exc:  # torch reports damaged files as RuntimeError, KeyError, EOFError, ...
         raise InputError(path, f"not a readable {what} ({_first_line(exc)})") from None
+
+
+def load_state_dict(path: str | Path, what: str) -> dict:
+    """A model's state dict from `path` (`load_weights`): bare, or under "model" and/or "state_dict",
+    with the "module." prefix of a DataParallel model removed; InputError for anything else."""
+    state = load_weights(path, what)
+    for key in ("model", "state_dict"):
+        if isinstance(state, dict) and key in state:
+            state = state[key]
+    if not isinstance(state, dict):
+        raise InputError(Path(path), f"a {what} holds a state dict, not a {type(state).__name__}")
+    # Checkpoints saved from DataParallel prefix every key with "module."; the bare model has none.
+    return {str(k).removeprefix("module."): v for k, v in state.items()}
 
 
 def _first_line(exc: BaseException) -> str:

@@ -11,7 +11,7 @@ import numpy as np
 from vfdata.errors import BackendError, InputError
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.segmenter import check_image
-from vfdata.weights import load_weights
+from vfdata.weights import load_state_dict
 
 
 @dataclass
@@ -40,12 +40,7 @@ class DetectorPrompt:
         if not path.is_file():
             raise BackendError(f"detector: weights {path} not found")
         # Read before torchvision builds anything: tensors only, nothing in the file runs.
-        state = load_weights(path, "detector weights file")
-        for key in ("model", "state_dict"):
-            if isinstance(state, dict) and key in state:
-                state = state[key]
-        if not isinstance(state, dict):
-            raise InputError(path, f"detector weights are a state dict, not a {type(state).__name__}")
+        state = load_state_dict(path, "detector weights file")
         # torchvision (and torch) load here, not at the top: `vfdata` starts without them.
         from torchvision.models.detection import fasterrcnn_resnet50_fpn
 

@@ -12,7 +12,7 @@ import numpy as np
 from vfdata.errors import BackendError, InputError
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.segmenter import Segmenter
-from vfdata.weights import load_weights
+from vfdata.weights import load_state_dict
 
 
 class Sam2Segmenter(Segmenter):
@@ -38,11 +38,7 @@ class Sam2Segmenter(Segmenter):
             raise BackendError(f"sam2: checkpoint {checkpoint} not found")
         # Read by us, tensors only, before the package is imported: older sam2 releases call
         # torch.load without weights_only.
-        state = load_weights(checkpoint, "SAM2 checkpoint")
-        if isinstance(state, dict) and "model" in state:
-            state = state["model"]
-        if not isinstance(state, dict):
-            raise InputError(checkpoint, f"a SAM2 checkpoint holds a state dict, not a {type(state).__name__}")
+        state = load_state_dict(checkpoint, "SAM2 checkpoint")
         try:  # an optional package, installed by the user with its weights
             from sam2.build_sam import build_sam2_video_predictor
         except ImportError as exc:

@@ -11,9 +11,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vfdata.errors import BackendError, InputError
+from vfdata.errors import BackendError
 from vfdata.recon.depth_estimator import DepthEstimator
-from vfdata.weights import load_weights
+from vfdata.weights import load_state_dict
 
 
 class StereoAnyVideoDepth(DepthEstimator):
@@ -50,7 +50,7 @@ class StereoAnyVideoDepth(DepthEstimator):
         if not checkpoint.is_file():
             raise BackendError(f"stereoanyvideo: checkpoint {checkpoint} not found")
         # Read before any model code is imported: tensors only, nothing in the file runs.
-        state = _state_dict(load_weights(checkpoint, "Stereo Any Video checkpoint"), checkpoint)
+        state = load_state_dict(checkpoint, "Stereo Any Video checkpoint")
         # torch is imported here, not at the top: `vfdata` starts without it unless a network runs.
         import torch
 
@@ -134,15 +134,3 @@ class StereoAnyVideoDepth(DepthEstimator):
         disp = disp[:, pads[2] : pads[2] + h, pads[0] : pads[0] + w]
         return [d.astype(np.float32) for d in disp]
 
-
-def _state_dict(saved: object, path: Path) -> dict:
-    """The model's state dict in a saved checkpoint: bare, or under "model" and/or "state_dict", with
-    the "module." prefix of a DataParallel model removed."""
-    state = saved
-    for key in ("model", "state_dict"):
-        if isinstance(state, dict) and key in state:
-            state = state[key]
-    if not isinstance(state, dict):
-        raise InputError(path, f"a Stereo Any Video checkpoint holds a state dict, not a {type(state).__name__}")
-    # Checkpoints saved from DataParallel prefix every key with "module."; the bare model has none.
-    return {str(k).removeprefix("module."): v for k, v in state.items()}

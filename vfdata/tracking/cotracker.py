@@ -17,10 +17,10 @@ import numpy as np
 import torch
 
 from vfdata.calibration import PinholeCamera
-from vfdata.errors import BackendError, InputError
+from vfdata.errors import BackendError
 from vfdata.tracking.lifting import lift_pixels
 from vfdata.tracking.sampling import select_reference_points
-from vfdata.weights import load_weights
+from vfdata.weights import load_state_dict
 
 CHECKPOINT_HINT = "download scaled_offline.pth from https://huggingface.co/facebook/cotracker3"
 
@@ -34,11 +34,7 @@ def load_cotracker(checkpoint: str | Path | None, device: str = "cpu", window_le
         raise BackendError(f"{path}: CoTracker3 checkpoint not found ({CHECKPOINT_HINT})")
     # Read by us, tensors only, before the package sees the file: its own loader unpickles whatever
     # the file holds (torch.load without weights_only).
-    state = load_weights(path, "CoTracker3 checkpoint")
-    if isinstance(state, dict) and "model" in state:
-        state = state["model"]
-    if not isinstance(state, dict):
-        raise InputError(path, f"a CoTracker3 checkpoint holds a state dict, not a {type(state).__name__}")
+    state = load_state_dict(path, "CoTracker3 checkpoint")
     try:  # an optional package, installed by the user with its weights
         from cotracker.predictor import CoTrackerPredictor
     except ImportError as exc:
