@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from vfdata.cli import COMMANDS, build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,3 +83,44 @@ def test_an_unexpected_exception_is_one_line_too(monkeypatch, capsys):
     err = capsys.readouterr().err.strip()
     assert err == ("vfdata info: internal error: ZeroDivisionError: division by zero (a bug in vfdata: run "
                    "`vfdata --debug info ...` for the traceback and report it)")
+
+
+def test_version(capsys):
+    from vfdata import __version__
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and __version__ in capsys.readouterr().out
+
+
+def test_data_commands_describe_themselves_and_every_option():
+    choices = build_parser()._subparsers._group_actions[0].choices
+    for name in ("convert", "info", "check", "process"):
+        parser = choices[name]
+        assert parser.description, name
+        undocumented = [a.dest for a in parser._actions if not a.help and a.dest != "help"]
+        assert undocumented == [], (name, undocumented)
+
+
+@pytest.mark.slow  # 30-45 s here: simulating, converting and processing a recording
+def test_the_readme_loop_runs_twice(tmp_path, capsys):
+    """`convert --skip-existing && process --skip-existing` over a dataset: the second pass keeps every
+    output as it is and succeeds; without the flag an existing output is refused."""
+    from vfdata.manifest import load_manifest
+    from vfdata.sim import synthesize
+
+    manifest = synthesize("mini", tmp_path / "mini", frames=4, progress=False)
+    entries = list(load_manifest(manifest))[:1]
+
+    def loop() -> None:
+        for e in entries:
+            assert main(["convert", str(e.raw), str(e.mcap), "--quiet", "--skip-existing"]) == 0
+            assert main(["process", str(e.mcap), "--quiet", "--skip-existing"]) == 0
+
+    loop()
+    outputs = [p for e in entries for p in (e.mcap, e.processed, e.processed.with_suffix(".png"))]
+    stamps = [p.stat().st_mtime_ns for p in outputs]
+    loop()
+    assert [p.stat().st_mtime_ns for p in outputs] == stamps
+    assert main(["convert", str(entries[0].raw), str(entries[0].mcap), "--quiet"]) == 1
+    assert main(["process", str(entries[0].mcap), "--quiet", "--skip-existing", "--overwrite"]) == 1

@@ -17,6 +17,7 @@ import sys
 from collections.abc import Callable
 from importlib.metadata import entry_points
 
+from vfdata import __version__
 from vfdata.errors import Terminated, VisionForceError
 
 # Order is the order shown in --help; the entry-point commands follow.
@@ -35,6 +36,7 @@ _SIGPIPE_EXIT = 128 + 13
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vfdata", description="VisionForce recordings and pipeline.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"vfdata {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f"vfdata.commands.{name.replace('-', '_')}").register(sub)

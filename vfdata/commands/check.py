@@ -10,8 +10,11 @@ from vfdata.recording.inspect import check_file
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("check", help="validate a recording or derived MCAP")
-    p.add_argument("file", type=Path)
+    p = sub.add_parser("check", help="validate a recording or derived MCAP",
+                       description="Validate an MCAP file: every chunk's CRC and index, the data-section CRC, the "
+                                   "layout (topics, schemas, metadata), stamps in order and the force-to-frame "
+                                   "sync. Prints 'FILE: ok' and exits 0, or one line per problem and exits 1.")
+    p.add_argument("file", type=Path, help="recording, derived (.processed.mcap) or force (.force.mcap) MCAP")
     p.set_defaults(func=run)
 
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from vfdata.commands.inspect_bag import add_bag_arguments, add_force_gap_argument, bag_arguments, force_gap_option_ns
+from vfdata.commands.outputs import skip_existing
 from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
@@ -32,12 +33,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--meta", type=Path, default=None,
                    help="RGB-D folder: the meta.yaml to use when it is not in the folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--skip-existing", action="store_true",
+                   help="keep an existing output and exit 0 (outputs are only ever complete: re-run a loop "
+                        "after an interruption)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_bag_arguments(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if skip_existing(args, args.out):
+        return 0
     if not 1 <= args.quality <= 100:
         raise InputError("--quality", f"JPEG quality must be 1-100, not {args.quality}")
     threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default

@@ -9,8 +9,11 @@ from vfdata.recording.inspect import info_text
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("info", help="describe a recording or derived MCAP")
-    p.add_argument("file", type=Path)
+    p = sub.add_parser("info", help="describe a recording or derived MCAP",
+                       description="Print what an MCAP file holds: each topic's type, message count, rate and "
+                                   "gaps, the duration, the camera, the force-to-frame sync and the metadata. "
+                                   "Reads the file only; for its integrity use `vfdata check`.")
+    p.add_argument("file", type=Path, help="recording, derived (.processed.mcap) or force (.force.mcap) MCAP")
     p.set_defaults(func=run)
 
 

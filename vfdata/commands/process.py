@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from vfdata.commands.outputs import skip_existing
 from vfdata.errors import VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
 
@@ -61,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="random seed of the point sampling and the tracker (default 0; same seed: same tracks)")
     p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--skip-existing", action="store_true",
+                   help="keep an existing output (and its picture) and exit 0: re-run a loop after an interruption")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -68,6 +71,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from vfdata.processing import ProcessOptions, default_output, preview_path, process_recording
 
+    target = args.out or default_output(args.src)
+    if skip_existing(args, target, preview_path(target)):
+        return 0
     options = ProcessOptions(
         depth=args.depth, depth_options=_options(args.depth_options), segment=args.segment,
         segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,
