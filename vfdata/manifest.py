@@ -10,8 +10,13 @@ recordings:
     split: train          #   (each overridable with raw:, mcap:, processed:)
     frames: [0, 700]      # optional: only frames [start, stop) of the recording (splits in time)
     prompt: box:10,20,300,400   # optional: the first frame's tissue prompt for `vfdata process`
-    calibration: cal.yaml # optional: an RGB-D folder's rgbd_calibration.yaml kept outside it
-    meta: meta.yaml       # optional: its meta.yaml kept outside it (both relative to root)
+    calibration: cal.yaml # optional: an RGB-D folder's rgbd_calibration.yaml kept outside it, or a
+                          #   bag's stereo calibration.yaml (instead of its CameraInfo)
+    meta: meta.yaml       # optional: an RGB-D folder's meta.yaml kept outside it (both relative to root)
+    gravity_up: [0, 0, 1] # optional, given to the conversion (`vfdata convert --meta`, docs/bags.md):
+    tissue: glove         #   up in the ECM pose's frame, the tissue, the force sensor's frame turned
+    sensor_to_object: xyz_deg:0,0,90   # into the object's; with orientation_deg and prompt
+    topics: {left: /cam/left/image_raw, right: /cam/right/image_raw, force: /ati/wrench}   # a bag's
 ```
 
 Entries that name one recording (the same `mcap:`) split it in time: each needs `frames:`, and
@@ -36,6 +41,8 @@ from vfdata.errors import InputError
 Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DERIVED_SUFFIX = ".processed.mcap"
+RECORDING_META_KEYS = ("gravity_up", "tissue", "sensor_to_object")  # entry keys given to the conversion
+TOPIC_KEYS = ("left", "right", "left_info", "right_info", "force", "pose")
 
 
 @dataclass(frozen=True)
@@ -50,8 +57,19 @@ class ManifestEntry:
     processed: Path  # the derived MCAP (mask, depth, cloud, tracks)
     frames: tuple[int, int] | None = None  # [start, stop) frame range, None: every frame
     prompt: str | None = None  # first-frame tissue prompt ("box:..." or "points:...")
-    calibration: Path | None = None  # RGB-D raw folder: its rgbd_calibration.yaml when kept outside it
+    calibration: Path | None = None  # RGB-D folder's rgbd_calibration.yaml, or a bag's calibration.yaml
     meta: Path | None = None  # raw folder: its meta.yaml when kept outside it
+    # What a bag (or raw folder) does not say, given to its conversion as `vfdata convert --meta` pairs:
+    # gravity_up, tissue, sensor_to_object (docs/bags.md); orientation_deg and prompt go with them.
+    recording_meta: dict | None = None
+    topics: dict | None = None  # a bag's topics: left, right, left_info, right_info, force, pose
+
+    def conversion_meta(self) -> dict:
+        """The metadata keys a conversion of this entry's raw recording is given."""
+        meta = {"orientation_deg": self.orientation_deg, **(self.recording_meta or {})}
+        if self.prompt is not None:
+            meta["prompt"] = self.prompt
+        return meta
 
     @property
     def ground_truth(self) -> Path:
@@ -112,10 +130,15 @@ def _entry(path: Path, root: Path, item) -> ManifestEntry:
     if prompt is not None and not isinstance(prompt, str):
         raise InputError(path, f"recording '{rid}': prompt must be text such as box:x0,y0,x1,y1")
     extra = {key: _under(root, item[key]) if item.get(key) is not None else None for key in ("calibration", "meta")}
+    recording_meta = {key: item[key] for key in RECORDING_META_KEYS if item.get(key) is not None} or None
+    topics = item.get("topics")
+    if topics is not None and (not isinstance(topics, dict) or not set(topics) <= set(TOPIC_KEYS)
+                               or not all(isinstance(v, str) for v in topics.values())):
+        raise InputError(path, f"recording '{rid}': topics must map some of {', '.join(TOPIC_KEYS)} to topic names")
     return ManifestEntry(
         rid, orientation, item["split"], _under(root, item.get("raw", rid)),
         _under(root, item.get("mcap", f"{rid}.mcap")), _under(root, item.get("processed", f"{rid}{DERIVED_SUFFIX}")),
-        _frames(path, rid, item.get("frames")), prompt, **extra,
+        _frames(path, rid, item.get("frames")), prompt, **extra, recording_meta=recording_meta, topics=topics,
     )
 
 
@@ -178,6 +201,9 @@ def write_manifest(path: str | Path, name: str, entries: list[ManifestEntry]) ->
         for key in ("calibration", "meta"):
             if getattr(e, key) is not None:
                 item[key] = str(getattr(e, key))
+        item.update(e.recording_meta or {})
+        if e.topics:
+            item["topics"] = dict(e.topics)
         recordings.append(item)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.partial")

@@ -75,8 +75,9 @@ def find_ground_truth(rec: Recording, given: Path | None) -> Path | None:
 
 
 def camera_up(rec: Recording) -> np.ndarray | None:
-    """Gravity-up in the left camera frame at the first frame, from the ECM pose (None without one)."""
-    if not rec.has(layout.ECM_POSE):
+    """Gravity-up in the left camera frame at the first frame, from the ECM pose (None without one, or
+    when the converter had to assume the up direction of the pose's frame: a bag without gravity_up)."""
+    if not rec.has(layout.ECM_POSE) or rec.metadata.extra.get("gravity_up_assumed") == "true":
         return None
     _, quat = rec.ecm_pose_at(rec.frame_times_ns[:1])
     if not np.isfinite(quat).all():
@@ -85,9 +86,11 @@ def camera_up(rec: Recording) -> np.ndarray | None:
 
 
 def recording_prompt(rec: Recording, src: Path, given: str | None) -> Prompt:
-    """The first frame's tissue prompt: given, else the recording metadata's `prompt_box`."""
+    """The first frame's tissue prompt: given, else the recording metadata's `prompt` or `prompt_box`."""
     if given:
         return Prompt.parse(given)
+    if rec.metadata.extra.get("prompt"):
+        return Prompt.parse(rec.metadata.extra["prompt"])
     box = rec.metadata.extra.get("prompt_box")
     if not box:
         raise InputError(src, "no tissue prompt: give --prompt box:x0,y0,x1,y1 (or points:x,y;...) or a "

@@ -49,13 +49,19 @@ class Decoded:
 
 
 def force_at(entry: ManifestEntry, times_ns: np.ndarray) -> np.ndarray:
-    """(F, 3) float32 N: the recording's force interpolated at `times_ns` (NaN across sensor gaps)."""
+    """(F, 3) float32 N in the object frame: the recording's force interpolated at `times_ns` (NaN across
+    sensor gaps), turned by the metadata's `sensor_to_object` rotation when the sensor's frame is not the
+    object's (docs/bags.md)."""
     if not entry.mcap.is_file():
         raise InputError(entry.mcap, f"recording '{entry.id}' not found (convert it with `vfdata convert`)")
     with Recording.open(entry.mcap) as rec:
         if not rec.has(layout.WRENCH):
             raise InputError(entry.mcap, f"recording '{entry.id}' has no {layout.WRENCH}: no force to train on")
-        return rec.force_at(times_ns)[:, :3].astype(np.float32)
+        force = rec.force_at(times_ns)[:, :3]
+        rotation = rec.metadata.extra.get("sensor_to_object")
+        if rotation:
+            force = force @ np.asarray(json.loads(rotation), dtype=np.float64).T
+        return force.astype(np.float32)
 
 
 def _tokens(spec: ClipSpec, times_ns: np.ndarray, points_object_mm: np.ndarray, visible: np.ndarray,

@@ -11,6 +11,7 @@ from vfdata.conversion.bag_scan import is_bag
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_folder import convert_raw_folder
+from vfdata.conversion.raw_meta import parse_meta_pairs
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
 from vfdata.errors import InputError
 
@@ -30,8 +31,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=None,
                    help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
                         f"{default_workers()} here)")
-    p.add_argument("--meta", type=Path, default=None,
-                   help="RGB-D folder: the meta.yaml to use when it is not in the folder")
+    p.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                   help="metadata the source lacks, repeatable (docs/bags.md): gravity_up=X,Y,Z (up in the ECM "
+                        "pose's frame), orientation_deg=DEG, tissue=NAME, prompt=box:x0,y0,x1,y1 (or points:x,y;...), "
+                        "sensor_to_object=xyz_deg:RX,RY,RZ (or 9 numbers: the force sensor's frame turned into the "
+                        "object frame), id=, split=, any other key; replaces meta.yaml's. For an RGB-D folder, "
+                        "also the path of the meta.yaml to use when it is not in the folder")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--skip-existing", action="store_true",
                    help="keep an existing output and exit 0 (outputs are only ever complete: re-run a loop "
@@ -52,14 +57,21 @@ def run(args: argparse.Namespace) -> int:
         force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet, **threads,
     )
     rgbd = not is_bag(args.src) and is_rgbd_folder(args.src)
-    if args.meta is not None and not rgbd:
-        raise InputError(args.src, "--meta applies to RGB-D raw folders (depth/ and color/) only")
+    files = [Path(m) for m in args.meta if "=" not in m]
+    pairs = parse_meta_pairs([m for m in args.meta if "=" in m])
+    if files and (not rgbd or len(files) > 1):
+        raise InputError(files[0], "--meta takes KEY=VALUE; a meta.yaml path only for an RGB-D raw folder "
+                                   "(depth/ and color/), once")
     if rgbd:
+        if pairs:
+            raise InputError(args.src, "--meta KEY=VALUE is for stereo raw folders and bags; an RGB-D folder takes "
+                                       "its meta.yaml (--meta FILE)")
         out = convert_rgbd_folder(args.src, args.out, overwrite=args.overwrite, options=options,
-                                  calibration=args.calibration, meta=args.meta)
+                                  calibration=args.calibration, meta=files[0] if files else None)
     elif is_bag(args.src):
-        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, **bag_arguments(args))
+        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, meta=pairs,
+                          **bag_arguments(args))
     else:
-        out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options)
+        out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options, meta=pairs)
     print(f"wrote {out}")
     return 0

@@ -65,6 +65,7 @@ from vfdata.conversion.bag_topics import (
 from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.image_messages import image_message
 from vfdata.conversion.options import ConvertOptions
+from vfdata.conversion.raw_meta import recording_fields
 from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
 from vfdata.conversion.write_recording import (
     StampedSeries,
@@ -228,8 +229,13 @@ def camera_model(scan: BagScan, calibration: StereoCalibration | None, calibrati
 # -- conversion -----------------------------------------------------------------------------------
 def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, options: ConvertOptions | None = None,
                 topics: BagTopics | None = None, calibration: str | Path | None = None,
-                pair_tolerance_ns: int | None = None) -> Path:
+                pair_tolerance_ns: int | None = None, meta: dict | None = None) -> Path:
     """Convert a ROS 1 or ROS 2 bag to a recording MCAP at `out`. Returns `out`.
+
+    `meta`: what a bag does not say, as meta.yaml keys (`vfdata convert --meta KEY=VALUE`; docs/bags.md):
+    gravity_up (the up direction in the ECM pose's frame; without it the object frame's X comes from the
+    image, not from [0, 0, 1] of a base frame nobody checked), orientation_deg, tissue, prompt,
+    sensor_to_object, id, split, any other key.
 
     `topics`: remapped topic names (None: dVRK defaults / auto-detection). `calibration`: a
     calibration.yaml used instead of the bag's CameraInfo topics. `pair_tolerance_ns`: largest
@@ -245,7 +251,8 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
         choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)
         scan = scan_bag(reader, src, choice, progress=options.progress)
         try:
-            _convert_scanned(reader, src, out, overwrite, options, scan, choice, calib, calibration, pair_tolerance_ns)
+            _convert_scanned(reader, src, out, overwrite, options, scan, choice, calib, calibration, pair_tolerance_ns,
+                             meta or {})
         finally:
             close_scan(scan)
     return out
@@ -253,18 +260,23 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
 
 def _convert_scanned(reader: AnyReader, src: Path, out: Path, overwrite: bool, options: ConvertOptions, scan: BagScan,
                      choice: TopicChoice, calib: StereoCalibration | None, calibration: str | Path | None,
-                     pair_tolerance_ns: int | None) -> None:
+                     pair_tolerance_ns: int | None, meta: dict) -> None:
     """Everything after the scan: pairing, checks, metadata, the convert pass."""
     plan = plan_pairs(scan, pair_tolerance_ns)
     info_l, info_r, tf, camera_source = camera_model(scan, calib, Path(calibration) if calibration else None)
     check_force_span(scan, plan, options.force_gap_tolerance_ns)
     _warn_about(scan, plan)
+    fields = recording_fields(meta, Path("--meta"), src.stem if src.is_file() else src.name,
+                              (scan.left.width, scan.left.height))
+    if "gravity_up" not in meta and "gravity_up_world" not in meta:
+        # A bag does not say which way is up in its ECM pose's frame: `process` then takes X from the image.
+        fields["extra"]["gravity_up_assumed"] = "true"
     record = layout.RecordingMeta(
-        recording_id=src.stem if src.is_file() else src.name,
+        **{k: v for k, v in fields.items() if k != "extra"},
         source=str(src.resolve()),
         converter=f"vfdata convert ({scan.kind} bag)",
         converter_version=__version__,
-        extra={
+        extra={**fields["extra"],
             "bag_left_topic": choice.left, "bag_right_topic": choice.right,
             "bag_force_topic": choice.force, "bag_pose_topic": choice.pose or "",
             "bag_force_frame_id": scan.force.frame_id,

@@ -40,8 +40,9 @@ __all__ = ["MAX_DEFAULT_WORKERS", "ConvertOptions", "convert_raw_folder", "defau
 
 
 def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False,
-                       options: ConvertOptions | None = None) -> Path:
-    """Convert a raw recording folder to a recording MCAP at `out`. Returns `out`."""
+                       options: ConvertOptions | None = None, meta: dict | None = None) -> Path:
+    """Convert a raw recording folder to a recording MCAP at `out`. Returns `out`. `meta`: metadata
+    keys that replace those of the folder's meta.yaml (`vfdata convert --meta KEY=VALUE`)."""
     options = options or ConvertOptions()
     src, out = Path(src), Path(out)
     if options.image_format not in ("jpeg", "png"):
@@ -55,7 +56,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     force_ns, wrench, force_frame = read_force_csv(force_path)
     pose_path = src / "ecm_pose.csv"
     pose = read_pose_csv(pose_path) if pose_path.exists() else None
-    meta = read_meta(src / "meta.yaml")
+    meta = {**read_meta(src / "meta.yaml"), **(meta or {})}
     source = StereoSource(src)
     if source.count != len(frame_ns):
         raise InputError(src / "frames.csv", f"{len(frame_ns)} rows but the recording has {source.count} frames")

@@ -10,6 +10,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from vfdata.errors import InputError
@@ -43,10 +44,42 @@ def read_meta(path: Path) -> dict:
     return meta
 
 
+def parse_meta_pairs(items: list[str], where: str = "--meta") -> dict:
+    """`KEY=VALUE` texts (vfdata convert --meta) -> a meta.yaml-like mapping; each value read as YAML, so
+    numbers are numbers and [0, 0, 1] a list."""
+    meta = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise InputError(where, f"'{item}' is not KEY=VALUE (e.g. orientation_deg=90, gravity_up=0,0,1)")
+        if key in meta:
+            raise InputError(where, f"'{key}' is given twice")
+        try:
+            value = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError:
+            value = text
+        meta[key] = text if isinstance(value, dict) else value  # "a: b" is text here, not a mapping
+    return meta
+
+
 def recording_fields(meta: dict, path: Path, default_id: str, image_size: tuple[int, int]) -> dict:
-    """Keyword arguments of `layout.RecordingMeta` from a meta.yaml mapping: recording_id, study,
-    tissue, orientation_deg, split, gravity_up_world and `extra` (every other key). `path` names the
-    file in errors; `image_size` (width, height) bounds `prompt_box`."""
+    """Keyword arguments of `layout.RecordingMeta` from a meta.yaml mapping (or `vfdata convert --meta`
+    pairs, or a manifest entry's keys): recording_id, study, tissue, orientation_deg, split,
+    gravity_up_world (also as `gravity_up`) and `extra` (every other key; `prompt` checked as a prompt,
+    `sensor_to_object` as a rotation and stored as a 3x3 JSON matrix). `path` names the file in errors;
+    `image_size` (width, height) bounds `prompt_box`."""
+    meta = dict(meta)
+    if "gravity_up" in meta:
+        if "gravity_up_world" in meta:
+            raise InputError(path, "'gravity_up' and 'gravity_up_world' are the same key: give one")
+        meta["gravity_up_world"] = meta.pop("gravity_up")
+    if isinstance(meta.get("gravity_up_world"), str):
+        meta["gravity_up_world"] = _numbers_text(meta["gravity_up_world"])
+    if "sensor_to_object" in meta:
+        meta["sensor_to_object"] = sensor_to_object_matrix(meta["sensor_to_object"], path)
+    if "prompt" in meta:
+        _check_prompt(meta["prompt"], path)
     fields = {
         "recording_id": _text(meta, "id", path) or default_id,
         **{key: _text(meta, key, path) for key in TEXT_KEYS},
@@ -148,6 +181,50 @@ def _json_text(value, key: str, path: Path) -> str:
         return item
 
     return json.dumps(plain(value))
+
+
+def _numbers_text(text: str):
+    """"0,0,1" -> [0.0, 0.0, 1.0]; text that is not numbers stays as it is (refused by its check)."""
+    try:
+        return [float(v) for v in text.strip().strip("[]").split(",")]
+    except ValueError:
+        return text
+
+
+def sensor_to_object_matrix(value, path: Path) -> list[list[float]]:
+    """The rotation from the force sensor's frame to the object frame, as a 3x3 list: given as 9 numbers
+    (rows; a list, nested or flat, or text "r11,r12,...,r33") or as "xyz_deg:rx,ry,rz" (rotations about
+    the fixed x, y, z axes in that order, degrees)."""
+    from scipy.spatial.transform import Rotation
+
+    try:
+        if isinstance(value, str) and value.strip().lower().startswith("xyz_deg:"):
+            angles = [float(v) for v in value.split(":", 1)[1].split(",")]
+            if len(angles) != 3:
+                raise ValueError
+            matrix = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
+        else:
+            numbers = _numbers_text(value) if isinstance(value, str) else value
+            matrix = np.asarray(numbers, dtype=float).reshape(3, 3)
+    except (ValueError, TypeError):
+        raise InputError(path, f"'sensor_to_object' must be 9 numbers (a 3x3 rotation, rows) or "
+                               f"xyz_deg:rx,ry,rz, not {value!r}") from None
+    if not (np.isfinite(matrix).all() and np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-3)
+            and np.linalg.det(matrix) > 0):
+        raise InputError(path, f"'sensor_to_object' {matrix.round(4).tolist()} is not a rotation (orthonormal, "
+                               "determinant +1)")
+    return matrix.tolist()
+
+
+def _check_prompt(value, path: Path) -> None:
+    from vfdata.recon.prompt import Prompt
+
+    if not isinstance(value, str):
+        raise InputError(path, f"'prompt' must be text such as box:x0,y0,x1,y1 or points:x,y;x,y, not {value!r}")
+    try:
+        Prompt.parse(value)
+    except InputError as exc:
+        raise InputError(path, f"'prompt' {value!r}: {exc.problem}") from None
 
 
 def _kind(value) -> str:

@@ -49,7 +49,7 @@ def first_frame_preview(image_bgr: np.ndarray, mask: np.ndarray, camera: Pinhole
             cv2.arrowedLine(out, origin, tip, colour, 2, cv2.LINE_AA, tipLength=0.15)
             draw_label(out, name, (tip[0] + 4, tip[1] + 4), colour)
         cv2.circle(out, origin, 4, (255, 255, 255), -1, cv2.LINE_AA)
-    up = "gravity-up from the ECM pose" if frame.up_known else "no ECM pose: X arbitrary"
+    up = "gravity-up from the ECM pose" if frame.up_known else "X from the image: no ECM pose or gravity_up"
     draw_label(out, f"mask {int(inside.sum())} px; object frame: search score {frame.score_deg:.1f} deg, {up}", (8, 20))
     draw_label(out, f"axes {axis_mm:g} mm: X red, Y green, Z blue (wide end -> narrow); "
                f"{0 if points_mm is None else len(points_mm)} tracked points", (8, 40))

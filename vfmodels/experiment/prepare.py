@@ -12,6 +12,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from vfdata.conversion.bag_scan import is_bag
+from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
@@ -49,11 +50,12 @@ def convert(entry: ManifestEntry, progress: bool = False) -> None:
                                     "exists (for simulated data run `vfdata synth --preset NAME DIR` first)")
     options = ConvertOptions(progress=progress)
     if is_bag(entry.raw):
-        convert_bag(entry.raw, entry.mcap, options=options)
+        convert_bag(entry.raw, entry.mcap, options=options, topics=BagTopics(**(entry.topics or {})),
+                    calibration=entry.calibration, meta=entry.conversion_meta())
     elif is_rgbd_folder(entry.raw):
         convert_rgbd_folder(entry.raw, entry.mcap, options=options, calibration=entry.calibration, meta=entry.meta)
     else:
-        convert_raw_folder(entry.raw, entry.mcap, options=options)
+        convert_raw_folder(entry.raw, entry.mcap, options=options, meta=entry.recording_meta)
 
 
 def process(job: ProcessJob) -> str:
