@@ -63,6 +63,14 @@ def test_checkpoint_reload_reproduces_predictions(tmp_path):
     # predictions are de-normalised: in N, on the scale of the targets
     assert via_lightning[0]["force_n"][..., 2].mean() > 0.5
 
+    # the symmetry views are an evaluation choice: recorded beside the model, not a hyper-parameter that
+    # Lightning's CLI would merge over the command line's
+    regressor.symmetry_turns = 2
+    t.save_checkpoint(tmp_path / "views.ckpt")
+    saved = torch.load(tmp_path / "views.ckpt", weights_only=True)
+    assert "symmetry_turns" not in saved["hyper_parameters"] and saved["force_model"]["symmetry_turns"] == 2
+    assert ForceRegressor.load(tmp_path / "views.ckpt").symmetry_turns == 2
+
 
 def test_compiled_regressor_saves_and_loads_plain_state_dicts(tmp_path):
     """`compile_model=True` wraps the model for speed only: the state dict (and so every checkpoint)

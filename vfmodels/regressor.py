@@ -65,7 +65,8 @@ class ForceRegressor(L.LightningModule):
         super().__init__()
         if symmetry_turns < 0 or (symmetry_turns and getattr(model, "input_key", "tokens") != "tokens"):
             raise ValueError(f"symmetry_turns={symmetry_turns}: a number of turns >= 0, and only for token inputs")
-        self.save_hyperparameters(ignore=["model"])
+        self.symmetry_turns = symmetry_turns
+        self.save_hyperparameters(ignore=["model", "symmetry_turns"])
         self.model = model
         for name in STAT_NAMES:
             self.register_buffer(name, torch.empty(0))
@@ -131,7 +132,7 @@ class ForceRegressor(L.LightningModule):
         """Normalised force predictions (B, T, 3); outside training averaged over the symmetry views."""
         model = self._compiled if self._compiled is not None else self.model
         x, valid = batch[self.model.input_key], batch.get("valid")
-        turns = self.hparams.get("symmetry_turns", 0)
+        turns = self.symmetry_turns
         if self.training or not turns:
             return model(self.normalise_input(x), valid)
         force_n = torch.zeros(*x.shape[:2], 3, device=x.device)
@@ -262,6 +263,7 @@ class ForceRegressor(L.LightningModule):
             "class_path": class_path(self.model),
             "init_args": dict(getattr(self.model, "config", {})),
             "initialisation": getattr(self.model, "initialisation", "random"),
+            "symmetry_turns": self.symmetry_turns,
         }
 
     @classmethod
@@ -279,7 +281,10 @@ class ForceRegressor(L.LightningModule):
             init_args["weights_path"] = None
         model = build_model(path, spec.get("class_path", ""), init_args)
         hparams = {k: v for k, v in checkpoint.get("hyper_parameters", {}).items() if k in ("lr", "weight_decay")}
-        regressor = cls(model, **hparams)
+        turns = spec.get("symmetry_turns", 0)
+        if not isinstance(turns, int) or isinstance(turns, bool) or turns < 0:
+            raise InputError(path, f"symmetry_turns {turns!r} in the checkpoint is not a number of turns >= 0")
+        regressor = cls(model, **hparams, symmetry_turns=turns)
         try:
             regressor.load_state_dict(checkpoint["state_dict"])
         except (KeyError, RuntimeError) as exc:
