@@ -31,6 +31,21 @@ def _read_header(r: CdrReader) -> tuple[int, str]:
     return sec * NS_PER_S + nanosec, r.string()
 
 
+def _encode_stamped_doubles(stamp_ns: int, frame_id: str, values) -> bytes:
+    """A message that is a header and float64 values only (WrenchStamped, PoseStamped)."""
+    w = CdrWriter()
+    _write_header(w, stamp_ns, frame_id)
+    for value in values:
+        w.float64(value)
+    return w.getvalue()
+
+
+def _decode_stamped_doubles(payload: bytes | memoryview, count: int) -> tuple[int, str, list[float]]:
+    r = CdrReader(payload)
+    stamp, frame = _read_header(r)
+    return stamp, frame, [r.float64() for _ in range(count)]
+
+
 @dataclass
 class CompressedImage:
     msgtype = "sensor_msgs/msg/CompressedImage"
@@ -141,17 +156,11 @@ class WrenchStamped:
     torque: tuple[float, float, float]  # N·m
 
     def encode(self) -> bytes:
-        w = CdrWriter()
-        _write_header(w, self.stamp_ns, self.frame_id)
-        for value in (*self.force, *self.torque):
-            w.float64(value)
-        return w.getvalue()
+        return _encode_stamped_doubles(self.stamp_ns, self.frame_id, (*self.force, *self.torque))
 
     @classmethod
     def decode(cls, payload: bytes | memoryview) -> WrenchStamped:
-        r = CdrReader(payload)
-        stamp, frame = _read_header(r)
-        values = [r.float64() for _ in range(6)]
+        stamp, frame, values = _decode_stamped_doubles(payload, 6)
         return cls(stamp, frame, tuple(values[:3]), tuple(values[3:]))
 
 
@@ -164,17 +173,11 @@ class PoseStamped:
     orientation: tuple[float, float, float, float]  # x, y, z, w
 
     def encode(self) -> bytes:
-        w = CdrWriter()
-        _write_header(w, self.stamp_ns, self.frame_id)
-        for value in (*self.position, *self.orientation):
-            w.float64(value)
-        return w.getvalue()
+        return _encode_stamped_doubles(self.stamp_ns, self.frame_id, (*self.position, *self.orientation))
 
     @classmethod
     def decode(cls, payload: bytes | memoryview) -> PoseStamped:
-        r = CdrReader(payload)
-        stamp, frame = _read_header(r)
-        values = [r.float64() for _ in range(7)]
+        stamp, frame, values = _decode_stamped_doubles(payload, 7)
         return cls(stamp, frame, tuple(values[:3]), tuple(values[3:]))
 
 
