@@ -68,10 +68,10 @@ from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_meta import recording_fields
 from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
 from vfdata.conversion.write_recording import (
-    StampedSeries,
     camera_infos,
     compressed_image_payload,
     encode_image,
+    sensor_series,
     stereo_tf,
     write_recording,
 )
@@ -79,10 +79,8 @@ from vfdata.errors import InputError
 from vfdata.recording import layout
 from vfdata.recording.messages import (
     CameraInfo,
-    PoseStamped,
     TFMessage,
     TransformStamped,
-    WrenchStamped,
 )
 
 log = logging.getLogger(__name__)
@@ -242,8 +240,7 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
     left/right stamp difference of a stereo pair (default half the median left frame period)."""
     options = options or ConvertOptions()
     src, out = Path(src), Path(out)
-    if options.image_format not in ("jpeg", "png"):
-        raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    options.check_format(out)
     if src.exists():
         check_output(out, overwrite, inputs=[src, *([calibration] if calibration is not None else [])])
     calib = StereoCalibration.load(calibration) if calibration is not None else None
@@ -398,10 +395,7 @@ def _write(reader: AnyReader, scan: BagScan, plan: PairPlan, out: Path, overwrit
         k, left, right = item
         return (encode_one(scan.left, k, left, layout.LEFT_FRAME), encode_one(scan.right, k, right, layout.RIGHT_FRAME))
 
-    series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, scan.force.stamps_ns, scan.force.values,
-                            scan.force.frame_id or layout.SENSOR_FRAME)]
-    if scan.pose is not None:
-        series.append(StampedSeries(layout.ECM_POSE, PoseStamped.msgtype, scan.pose.stamps_ns, scan.pose.values,
-                                    layout.WORLD_FRAME))
+    series = sensor_series((scan.force.stamps_ns, scan.force.values, scan.force.frame_id or layout.SENSOR_FRAME),
+                           None if scan.pose is None else (scan.pose.stamps_ns, scan.pose.values))
     write_recording(out, overwrite, options, record, (info_l, info_r), tf, plan.stamps_ns,
                     _stereo_messages(reader, scan, plan), encode, series, scan.path.name)

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
+from vfdata.errors import InputError
 from vfdata.recording.writer import CHUNK_SIZE
 
 MAX_DEFAULT_WORKERS = 8
@@ -31,3 +33,8 @@ class ConvertOptions:
     progress: bool = True
     chunk_size: int = CHUNK_SIZE  # bytes of messages per MCAP chunk
     keep_jpeg: bool = True  # store colour JPEG input frames byte for byte (jpeg output only)
+
+    def check_format(self, out: Path) -> None:
+        """InputError naming the output when the image format is not one the writer has."""
+        if self.image_format not in ("jpeg", "png"):
+            raise InputError(out, f"image format must be jpeg or png, not {self.image_format}")

@@ -21,18 +21,17 @@ from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_images import StereoSource, jpeg_colour_size
 from vfdata.conversion.raw_meta import read_meta, recording_fields
-from vfdata.conversion.raw_tables import read_force_csv, read_frames_csv, read_pose_csv
+from vfdata.conversion.raw_tables import read_folder_tables, read_force_csv
 from vfdata.conversion.write_recording import (
-    StampedSeries,
     camera_infos,
     compressed_image_payload,
     encode_image,
+    sensor_series,
     stereo_tf,
     write_recording,
 )
 from vfdata.errors import InputError
 from vfdata.recording import layout
-from vfdata.recording.messages import PoseStamped, WrenchStamped
 
 # Imported from here by other modules and the tests.
 __all__ = ["MAX_DEFAULT_WORKERS", "ConvertOptions", "convert_raw_folder", "default_workers", "jpeg_colour_size",
@@ -45,22 +44,17 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     keys that replace those of the folder's meta.yaml (`vfdata convert --meta KEY=VALUE`)."""
     options = options or ConvertOptions()
     src, out = Path(src), Path(out)
-    if options.image_format not in ("jpeg", "png"):
-        raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    options.check_format(out)
     if not src.is_dir():
         raise InputError(src, "recording folder not found")
     check_output(out, overwrite, inputs=[src])
     calib = StereoCalibration.load(src / "calibration.yaml")
-    frame_ns = read_frames_csv(src / "frames.csv")
-    force_path = src / "force.csv"
-    force_ns, wrench, force_frame = read_force_csv(force_path)
-    pose_path = src / "ecm_pose.csv"
-    pose = read_pose_csv(pose_path) if pose_path.exists() else None
+    frame_ns, force, pose = read_folder_tables(src)
     meta = {**read_meta(src / "meta.yaml"), **(meta or {})}
     source = StereoSource(src)
     if source.count != len(frame_ns):
         raise InputError(src / "frames.csv", f"{len(frame_ns)} rows but the recording has {source.count} frames")
-    check_force_covers(force_path, force_ns, frame_ns, options.force_gap_tolerance_ns)
+    check_force_covers(src / "force.csv", force[0], frame_ns, options.force_gap_tolerance_ns)
 
     record = layout.RecordingMeta(
         **recording_fields(meta, src / "meta.yaml", src.name, (calib.width, calib.height)),
@@ -68,9 +62,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
         converter="vfdata convert (raw folder)",
         converter_version=__version__,
     )
-    series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, force_ns, wrench, force_frame)]
-    if pose is not None:
-        series.append(StampedSeries(layout.ECM_POSE, PoseStamped.msgtype, pose[0], pose[1], layout.WORLD_FRAME))
+    series = sensor_series(force, pose)
     keep_jpeg = options.keep_jpeg and options.image_format == "jpeg"
 
     def encode_one(image: Path | np.ndarray, name: str) -> bytes | np.ndarray:

@@ -23,18 +23,18 @@ from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_images import IMAGE_SUFFIXES
 from vfdata.conversion.raw_meta import read_meta, recording_fields
-from vfdata.conversion.raw_tables import read_force_csv, read_frames_csv, read_pose_csv
+from vfdata.conversion.raw_tables import read_folder_tables
 from vfdata.conversion.rgbd_calibration import CALIBRATION_FILE, RgbdCalibration, camera_info, depth_to_color_tf
 from vfdata.conversion.write_recording import (
-    StampedSeries,
     View,
     compressed_image_payload,
     encode_image,
+    sensor_series,
     write_recording,
 )
 from vfdata.errors import InputError
 from vfdata.recording import layout
-from vfdata.recording.messages import CompressedImage, Image, PoseStamped, WrenchStamped
+from vfdata.recording.messages import CompressedImage, Image
 
 DEPTH_VIEW = View(layout.DEPTH_IMAGE, Image.msgtype, layout.DEPTH_INFO)
 COLOR_VIEW = View(layout.COLOR_IMAGE, CompressedImage.msgtype, layout.COLOR_INFO)
@@ -78,8 +78,7 @@ def convert_rgbd_folder(src: str | Path, out: str | Path, overwrite: bool = Fals
     is). Returns `out`."""
     options = options or ConvertOptions()
     src, out = Path(src), Path(out)
-    if options.image_format not in ("jpeg", "png"):
-        raise InputError(out, f"image format must be jpeg or png, not {options.image_format}")
+    options.check_format(out)
     if not src.is_dir():
         raise InputError(src, "recording folder not found")
     calib_path = Path(calibration) if calibration is not None else src / CALIBRATION_FILE
@@ -88,11 +87,7 @@ def convert_rgbd_folder(src: str | Path, out: str | Path, overwrite: bool = Fals
         raise InputError(meta_path, "meta file not found")
     check_output(out, overwrite, inputs=[src, calib_path, meta_path])
     calib = RgbdCalibration.load(calib_path)
-    frame_ns = read_frames_csv(src / "frames.csv")
-    force_path = src / "force.csv"
-    force_ns, wrench, force_frame = read_force_csv(force_path)
-    pose_path = src / "ecm_pose.csv"
-    pose = read_pose_csv(pose_path) if pose_path.exists() else None
+    frame_ns, force, pose = read_folder_tables(src)
     meta_values = read_meta(meta_path)
     depth_files = _images(src / "depth")
     color_files = _images(src / "color") if (src / "color").is_dir() else None
@@ -102,7 +97,7 @@ def convert_rgbd_folder(src: str | Path, out: str | Path, overwrite: bool = Fals
         raise InputError(calib_path, "the folder has color/ frames: give the 'color' camera too")
     if len(depth_files) != len(frame_ns):
         raise InputError(src / "frames.csv", f"{len(frame_ns)} rows but the recording has {len(depth_files)} frames")
-    check_force_covers(force_path, force_ns, frame_ns, options.force_gap_tolerance_ns)
+    check_force_covers(src / "force.csv", force[0], frame_ns, options.force_gap_tolerance_ns)
 
     depth_cam = calib.depth
     extra = {"camera": "rgbd", "depth_color_registered": str(calib.registered).lower(),
@@ -111,9 +106,7 @@ def convert_rgbd_folder(src: str | Path, out: str | Path, overwrite: bool = Fals
     fields["extra"] = {**extra, **fields["extra"]}
     record = layout.RecordingMeta(**fields, source=str(src.resolve()), converter="vfdata convert (RGB-D raw folder)",
                                   converter_version=__version__, units=dict(layout.RGBD_UNITS))
-    series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, force_ns, wrench, force_frame)]
-    if pose is not None:
-        series.append(StampedSeries(layout.ECM_POSE, PoseStamped.msgtype, pose[0], pose[1], layout.WORLD_FRAME))
+    series = sensor_series(force, pose)
     first = int(frame_ns[0])
     views, infos = [DEPTH_VIEW], [camera_info(depth_cam, layout.DEPTH_FRAME, first)]
     if color_files is not None:

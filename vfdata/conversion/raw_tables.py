@@ -67,6 +67,16 @@ def read_force_csv(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
     return stamps, wrench, frame_id or layout.SENSOR_FRAME
 
 
+def read_folder_tables(src: Path) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, str],
+                                             tuple[np.ndarray, np.ndarray] | None]:
+    """A raw folder's frames.csv stamps, force.csv (stamps, (N, 6) wrench, frame id) and ecm_pose.csv
+    (stamps, (N, 7)) when there is one."""
+    frame_ns = read_frames_csv(src / "frames.csv")
+    force = read_force_csv(src / "force.csv")
+    pose_path = src / "ecm_pose.csv"
+    return frame_ns, force, read_pose_csv(pose_path) if pose_path.exists() else None
+
+
 def read_pose_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """ecm_pose.csv (`timestamp_ns,x,y,z,qx,qy,qz,qw`, metres) -> stamps, (N, 7) with unit quaternions."""
     columns = ["x", "y", "z", "qx", "qy", "qz", "qw"]

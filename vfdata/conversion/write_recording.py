@@ -25,8 +25,10 @@ from vfdata.recording.messages import (
     NS_PER_S,
     CameraInfo,
     CompressedImage,
+    PoseStamped,
     TFMessage,
     TransformStamped,
+    WrenchStamped,
     encode_stamped_batch,
 )
 from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
@@ -48,6 +50,15 @@ class StampedSeries:
     stamps_ns: np.ndarray
     values: np.ndarray
     frame_id: str
+
+
+def sensor_series(force: tuple[np.ndarray, np.ndarray, str], pose: tuple[np.ndarray, np.ndarray] | None
+                  ) -> list[StampedSeries]:
+    """The force series (stamps, wrench, frame id) and the ECM pose series (stamps, pose) if any."""
+    series = [StampedSeries(layout.WRENCH, WrenchStamped.msgtype, *force)]
+    if pose is not None:
+        series.append(StampedSeries(layout.ECM_POSE, PoseStamped.msgtype, *pose, layout.WORLD_FRAME))
+    return series
 
 
 # -- the camera model ---------------------------------------------------------------------------------
