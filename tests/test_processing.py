@@ -177,3 +177,17 @@ def test_a_derived_file_reads_like_a_recording(processed):
     assert derived.meta.typed()["depth"] == "sgbm"
     with pytest.raises(InputError):
         derived.meta.number("depth")
+
+
+def test_the_foxglove_layout_names_what_the_files_hold(recording, processed):
+    """docs/foxglove_layout.json (a recording and its derived file opened together) names only topics
+    and frames the two files have (and the estimate of a .force.mcap)."""
+    layout_file = json.loads((Path(__file__).resolve().parents[1] / "docs" / "foxglove_layout.json").read_text())
+    topics = {*Recording.open(recording).topics, *Recording.open(processed).topics, layout.FORCE_ESTIMATE}
+    named = set()
+    for config in layout_file["configById"].values():
+        named |= set(config.get("topics", {}))
+        named |= {config["imageMode"]["imageTopic"]} if "imageMode" in config else set()
+        named |= {p["value"].split(".", 1)[0] for p in config.get("paths", [])}
+    assert named and named <= topics, named - topics
+    assert layout_file["configById"]["3D!vfscene"]["followTf"] == layout.LEFT_FRAME
