@@ -1,6 +1,7 @@
 """train.py through Lightning's CLI: fast_dev_run, then fit / test --ckpt_path best / predict in
 separate CLI runs (the best checkpoint is found from the run folder)."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -278,3 +279,40 @@ def test_help_describes_the_project_and_finds_the_data_options(capsys, monkeypat
     out = capsys.readouterr().out
     assert "VisionForce" in out and "Lightning Trainer command line tool" not in out
     assert "--data.spec.frame {object,camera}" in out and "--model.model.in_features" in out
+
+
+@pytest.mark.slow
+def test_ddp_on_two_cpu_processes(tmp_path):
+    """`train.py fit --trainer.strategy=ddp --trainer.devices=2` on CPU (gloo) on a short `mini`: both
+    ranks train, one closing line names the best checkpoint, and the checkpoint's normalisation
+    statistics are the training split's alone."""
+    import subprocess
+
+    from vfdata.cli import main as vfdata_main
+    from vfdata.clips.dataset import ForceClipDataset
+    from vfdata.clips.spec import ClipSpec
+    from vfdata.manifest import load_manifest
+    from vfdata.sim import synthesize
+
+    manifest = synthesize("mini", tmp_path / "mini", frames=40, progress=False)
+    for e in load_manifest(manifest):
+        assert vfdata_main(["convert", str(e.raw), str(e.mcap), "--quiet"]) == 0
+        assert vfdata_main(["process", str(e.mcap), "--depth", "recorded", "--tracker", "groundtruth", "--quiet"]) == 0
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    config = ROOT / "configs" / "proposed.yaml"
+    done = subprocess.run([sys.executable, str(ROOT / "train.py"), "fit", f"--config={config}",
+                           f"--data.manifest={manifest}", "--data.cache_dir=null", "--data.progress=false",
+                           "--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu",
+                           "--trainer.max_epochs=2", "--trainer.enable_progress_bar=false",
+                           f"--trainer.default_root_dir={run}"], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    closing = [line for line in done.stdout.splitlines() if line.startswith("best checkpoint")]
+    assert len(closing) == 1, done.stdout[-3000:]
+    best = best_checkpoint(run / "checkpoints")
+    assert str(best) in closing[0]
+    state = torch.load(best, weights_only=True)
+    train = ForceClipDataset.from_manifest(manifest, split="train", spec=ClipSpec(), progress=False)
+    train_stats = train.normalisation()
+    for key in ("force_mean", "force_std", "input_mean", "input_std"):
+        torch.testing.assert_close(state["state_dict"][key], train_stats[key])
