@@ -78,7 +78,12 @@ def tracking_quality(derived: DerivedRecording, camera, force_n: np.ndarray, tes
         rows.append({"frame": peak, "force_n": force_n[peak].round(2).tolist(),
                      "coverage": coverage(uv, mask, tracks.visible[peak]),
                      "nni": nearest_neighbour_index(uv, first_uv, tracks.visible[peak], tracks.visible[0]),
-                     "visible": float(tracks.visible[peak].mean()), "forward_backward": fb})
+                     "visible": float(tracks.visible[peak].mean()), "forward_backward": fb,
+                     # how far the points moved from frame 0 (object frame; Z: height above the board)
+                     "deepest_sink_mm": float(-(tracks.points_object_mm[peak, :, 2]
+                                                - tracks.points_object_mm[0, :, 2]).min()),
+                     "displacement_p95_mm": float(np.percentile(np.linalg.norm(
+                         tracks.points_object_mm[peak] - tracks.points_object_mm[0], axis=1), 95))})
     return {"peaks": rows, "mean_coverage": float(np.mean([r["coverage"] for r in rows])),
             "mean_nni": float(np.mean([r["nni"] for r in rows])),
             "fb_median_mm": float(np.median([r["forward_backward"]["median_mm"] for r in rows])),
@@ -117,8 +122,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
         uv = rec.camera.project(tracks.points_camera_mm(peak))
         plot_tracked_points(frame_image(rec, peak), {f"geometry, frame {peak}": (uv, tracks.visible[peak])},
                             out / "tracks_peak.png", mask=masks[peak],
-                            title=f"Tracked points at the test stretch's largest press (Fz {force[peak, 2]:.0f} N), "
-                                  "depth view")
+                            title=f"Largest test press (Fz {force[peak, 2]:.0f} N), depth view")
     features = {"ridge_depth_change": depth_change_features(depths),
                 "ridge_masked_depth": masked_depth_features(depths, masks)}
     temporal, temporal_pred = run_baselines(features, force, temporal_indices(splits))
