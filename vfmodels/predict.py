@@ -32,7 +32,7 @@ from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
 from vfdata.errors import InputError, OutputExistsError
-from vfdata.processing import ProcessOptions, process_recording
+from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracks, write_force_estimate
@@ -186,7 +186,7 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
     fps = 1e9 / float(np.median(np.diff(times))) if len(times) > 1 else 30.0
     with OverlayVideo(path, fps) as writer:
         for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
-            image = rec.rectified_frame(rec.frame_index_at(int(times[i]))).left
+            image = frame_image(rec, rec.frame_index_at(int(times[i])))
             label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"
             writer.write(draw_force_overlay(image, origin_uv, force_cam[i], scale, label,
                                             None if measured_cam is None else measured_cam[i]))
