@@ -147,7 +147,8 @@ def test_one_thread_by_default_and_the_callers_counts_restored(recording, proces
     another, records the count beside its stage rates and leaves the caller's setting as it was."""
     import torch
 
-    assert Recording.open(processed).metadata_records[layout.DERIVED_METADATA]["stage_threads"] == "1"
+    meta = Recording.open(processed).metadata_records[layout.DERIVED_METADATA]
+    assert meta["stage_threads"] == "1" and int(meta["stage_cores"]) >= 1 and float(meta["stage_load_1min"]) >= 0
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(3)
@@ -191,3 +192,13 @@ def test_the_foxglove_layout_names_what_the_files_hold(recording, processed):
         named |= {p["value"].split(".", 1)[0] for p in config.get("paths", [])}
     assert named and named <= topics, named - topics
     assert layout_file["configById"]["3D!vfscene"]["followTf"] == layout.LEFT_FRAME
+
+
+def test_timing_says_how_the_rates_were_measured(recording, processed):
+    from vfdata.manifest import ManifestEntry
+    from vfmodels.experiment.report import rate_conditions
+
+    entry = ManifestEntry("mini_002", 90.0, "test", recording.parent / "mini_002", recording, processed)
+    line = rate_conditions([entry], "geometry")
+    meta = Recording.open(processed).metadata_records[layout.DERIVED_METADATA]
+    assert f"{meta['stage_threads']} torch thread" in line and f"{meta['stage_cores']} core" in line

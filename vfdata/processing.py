@@ -3,12 +3,13 @@ and a picture of the first frame beside it.
 
 This module only connects files to the engine (`vfdata.engine.FrameEngine`, the stages) and the
 derived layout (`vfdata.recording.derived`). Per-stage rates are kept in the derived file's metadata,
-with the torch thread count they were measured with."""
+with the torch thread count they were measured with, the cores and the load average at the end."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -273,6 +274,9 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
         "stage_threads": str(threads),
+        # Beside the rates: whether the machine was shared while they were measured (load > cores: it was).
+        "stage_cores": str(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()),
+        "stage_load_1min": f"{os.getloadavg()[0]:.2f}",
         "converter_version": __version__,
     }
 

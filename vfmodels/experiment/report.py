@@ -208,6 +208,26 @@ def stage_rates(entries: list[ManifestEntry], tracker: str) -> dict[str, float]:
     return tables.combine_stage_fps(per, frames) if per else {}
 
 
+def rate_conditions(entries: list[ManifestEntry], tracker: str) -> str:
+    """How the stage rates were measured (threads, cores, load: `vfdata process` records them), one line;
+    empty for files from before it did."""
+    seen = []
+    for entry in entries:
+        if derived_path(entry, tracker).is_file():
+            with DerivedRecording.open(derived_path(entry, tracker)) as derived:
+                if derived.meta.get("stage_cores"):
+                    seen.append((derived.meta.get("stage_threads", "?"), int(derived.meta.number("stage_cores")),
+                                 float(derived.meta.number("stage_load_1min"))))
+    if not seen:
+        return ""
+    threads = ", ".join(sorted({t for t, _, _ in seen}))
+    cores, load = max(c for _, c, _ in seen), max(v for _, _, v in seen)
+    shared = " (the machine was shared: load above the cores, so these rates are below the method's)" \
+        if load > cores else ""
+    return (f"\nMeasured by `vfdata process` with {threads} torch thread(s) per process on {cores} core(s), "
+            f"1-minute load average up to {load:.1f}{shared}.\n")
+
+
 def first_frame(entry: ManifestEntry, tracker: str) -> np.ndarray:
     """`first_frame_preview` of a processed recording, drawn from its files."""
     with Recording.open(entry.mcap) as rec:
@@ -294,7 +314,7 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
     if model_fps:
         rates["force"] = float(np.mean(model_fps))
     if rates:
-        (out / "timing.md").write_text(tables.timing_table_markdown(rates))
+        (out / "timing.md").write_text(tables.timing_table_markdown(rates) + rate_conditions(entries, "geometry"))
         (out / "timing.json").write_text(json.dumps(rates, indent=2))
         paths["timing.md"] = out / "timing.md"
     paths.update(write_figures(out, entries, trackers or ["geometry"], data.name))
