@@ -283,14 +283,12 @@ def up_in_camera(quat_xyzw: np.ndarray, world_up: tuple[float, float, float] = (
 @dataclass
 class _Fit:
     """Per candidate (C of them): centreline direction and point, score (rad, NaN: no fit), the
-    span of the usable slabs, and per slab (C, K) the position along c and the ellipse size."""
+    span of the usable slabs, and per slab the ellipse centre."""
 
     direction: np.ndarray
     line_point: np.ndarray
     score: np.ndarray
     extent: np.ndarray
-    slab_t: np.ndarray
-    slab_size: np.ndarray
     centres: np.ndarray  # (C, K, 3) ellipse/circle centres in 3D, NaN where the slab is unusable
 
 
@@ -385,8 +383,6 @@ def _slice_and_fit(points: np.ndarray, c: np.ndarray, circles: bool = False) -> 
         line_point=mean,
         score=score,
         extent=extent,
-        slab_t=t_good,
-        slab_size=np.where(good, size, np.nan),
         centres=np.where(good[..., None], centres, np.nan),
     )
 

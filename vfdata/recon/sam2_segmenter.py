@@ -56,7 +56,6 @@ class Sam2Segmenter(Segmenter):
             raise BackendError(f"sam2: {checkpoint} does not fit {config}: {str(exc).splitlines()[0]}") from exc
         self.config, self.checkpoint, self.device = config, checkpoint, device
         self._frames: list[np.ndarray] = []
-        self._prompt: Prompt | None = None
         self._masks: list[np.ndarray] = []
 
     def parameters(self) -> dict:
@@ -98,7 +97,7 @@ class Sam2Segmenter(Segmenter):
         return [m if m is not None else np.zeros((h, w), bool) for m in masks]
 
     def start(self, image: np.ndarray, prompt: Prompt, depth_mm: np.ndarray | None = None) -> np.ndarray:
-        self._frames, self._prompt = [image], prompt
+        self._frames = [image]
         self._masks = self.segment_video(self._frames, prompt)
         return self._masks[0]
 

@@ -285,7 +285,6 @@ _MAKERS: dict[str, Callable[..., _Adapter]] = {
     "static": _Static,
 }
 TRACKERS: tuple[str, ...] = tuple(_MAKERS)
-ONLINE_TRACKERS: tuple[str, ...] = tuple(name for name in TRACKERS if name != "cotracker")
 
 
 def make_tracker(name: str, first_frame: FrameInputs, num_points: int = 256, seed: int = 0,
