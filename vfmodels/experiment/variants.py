@@ -42,7 +42,7 @@ class Variant:
 # The project's own pipeline, the default for users: the paper's network on deformation tokens with the
 # tube's mirror symmetry (docs/results.md), its camera-frame twin, and the fast ridge model on its tokens.
 VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
-    Variant("visionforce", "VisionForce (displacement tokens, mirror symmetry)", "visionforce.yaml", table="I+II"),
+    Variant("visionforce", "VisionForce (deformation tokens, tube symmetries)", "visionforce.yaml", table="I+II"),
     Variant("visionforce_camera_frame", "VisionForce, camera frame", "visionforce_camera_frame.yaml"),
     Variant("ridge", "Ridge on VisionForce's tokens (pooled moments, seconds to train)", "visionforce.yaml",
             kind="ridge"),
