@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     if files and (not rgbd or len(files) > 1):
         raise InputError(files[0], "--meta takes KEY=VALUE; a meta.yaml path only for an RGB-D raw folder "
                                    "(depth/ and color/), once")
+    meta = {"meta": pairs} if pairs else {}  # only when given: the converters' own default otherwise
     if rgbd:
         if pairs:
             raise InputError(args.src, "--meta KEY=VALUE is for stereo raw folders and bags; an RGB-D folder takes "
@@ -69,9 +70,9 @@ def run(args: argparse.Namespace) -> int:
         out = convert_rgbd_folder(args.src, args.out, overwrite=args.overwrite, options=options,
                                   calibration=args.calibration, meta=files[0] if files else None)
     elif is_bag(args.src):
-        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, meta=pairs,
+        out = convert_bag(args.src, args.out, overwrite=args.overwrite, options=options, **meta,
                           **bag_arguments(args))
     else:
-        out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options, meta=pairs)
+        out = convert_raw_folder(args.src, args.out, overwrite=args.overwrite, options=options, **meta)
     print(f"wrote {out}")
     return 0
