@@ -29,7 +29,7 @@ from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bott
 from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
-from vfmodels.predict import CLIP_FRAMES, load_force_model
+from vfmodels.predict import CLIP_FRAMES, load_force_model, model_device
 from vfmodels.regressor import ForceRegressor
 
 # The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
@@ -101,16 +101,16 @@ class StreamingForceModel:
         reference = mirror_y(self.reference, self.side)
         tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps,
                                      reference_mm=reference)
-        model = self.regressor.model
-        x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None])
-        z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None])[0]  # (1, D)
+        model, device = self.regressor.model, model_device(self.regressor)
+        x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None].to(device))
+        z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None].to(device))[0]  # (1, D)
         decoder = model.decoder
         if self.window is None:
             h, self.state = decoder.lstm(z[None], self.state)
         else:
             self.embeddings.append(z[0])
             h, _ = decoder.lstm(torch.stack(list(self.embeddings))[None])
-        force = self.regressor.denormalise_force(decoder.heads(h[0, -1])).numpy().astype(np.float64)
+        force = self.regressor.denormalise_force(decoder.heads(h[0, -1])).cpu().numpy().astype(np.float64)
         return recent[target][0], mirror_y(force, self.side)
 
 
@@ -123,8 +123,9 @@ class StreamingForceEstimator:
 
     def __init__(self, ckpt: str | Path, camera: PinholeCamera, baseline_mm: float, prompt: str | Prompt,
                  options: EngineOptions | None = None, up: np.ndarray | None = None,
-                 window: int | None = CLIP_FRAMES, pipelined: bool = False):
-        self.regressor, self.spec = load_force_model(ckpt)
+                 window: int | None = CLIP_FRAMES, pipelined: bool = False, device: str = "cpu"):
+        """`device`: where the force model runs (the tracker's is `options.tracker_options["device"]`)."""
+        self.regressor, self.spec = load_force_model(ckpt, device)
         self.camera, self.baseline_mm, self.up = camera, float(baseline_mm), up
         self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
         self.options, self.window, self.pipelined = options or EngineOptions(), window, pipelined

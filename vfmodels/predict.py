@@ -46,8 +46,9 @@ CLIP_FRAMES = 16
 # ---- the model -----------------------------------------------------------------------------------
 
 
-def load_force_model(ckpt: str | Path) -> tuple[ForceRegressor, ClipSpec]:
-    """The trained point regressor (eval mode, CPU) and the ClipSpec it was trained with."""
+def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegressor, ClipSpec]:
+    """The trained point regressor (eval mode, on `device`: `vfdata.device.resolve_device`) and the
+    ClipSpec it was trained with."""
     regressor = ForceRegressor.load(ckpt)
     if regressor.model.input_key != "tokens":
         raise InputError(ckpt, f"{type(regressor.model).__name__} takes {regressor.model.input_key}, not tracked "
@@ -58,7 +59,11 @@ def load_force_model(ckpt: str | Path) -> tuple[ForceRegressor, ClipSpec]:
     if regressor.model.config.get("in_features", spec.channels) != spec.channels:
         raise InputError(ckpt, f"model takes {regressor.model.config['in_features']} features per point, its "
                                f"clip spec gives {spec.channels} ({spec.features})")
-    return regressor, spec
+    return regressor.to(device), spec
+
+
+def model_device(regressor: ForceRegressor) -> torch.device:
+    return next(regressor.parameters()).device
 
 
 @torch.no_grad()
@@ -66,13 +71,13 @@ def frame_embeddings(regressor: ForceRegressor, tokens: np.ndarray, valid: np.nd
                      ) -> torch.Tensor:
     """Per-frame set embeddings z_t (T, D) (frames are independent before the LSTM, so they are
     batched freely)."""
-    model = regressor.model
+    model, device = regressor.model, model_device(regressor)
     out = []
     for start in range(0, len(tokens), batch):
-        x = torch.from_numpy(np.ascontiguousarray(tokens[start:start + batch]))[None]
-        m = torch.from_numpy(np.ascontiguousarray(valid[start:start + batch]))[None]
+        x = torch.from_numpy(np.ascontiguousarray(tokens[start:start + batch]))[None].to(device)
+        m = torch.from_numpy(np.ascontiguousarray(valid[start:start + batch]))[None].to(device)
         out.append(model.encode_frames(regressor.normalise_input(x), m)[0])
-    return torch.cat(out) if out else torch.zeros(0, model.config.get("dim", 64))
+    return torch.cat(out) if out else torch.zeros(0, model.config.get("dim", 64), device=device)
 
 
 @torch.no_grad()
@@ -82,16 +87,16 @@ def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int | No
     decoder = regressor.model.decoder
     if window is None or len(z) <= window:
         h, _ = decoder.lstm(z[None])
-        return regressor.denormalise_force(decoder.heads(h[0])).numpy()
+        return regressor.denormalise_force(decoder.heads(h[0])).cpu().numpy()
     t = len(z)  # all windows at once: (T, window, D)
     index = np.arange(t)[:, None] + np.arange(-window + 1, 1)[None, :]
-    h, _ = decoder.lstm(z[torch.from_numpy(np.clip(index, 0, None))])
+    h, _ = decoder.lstm(z[torch.from_numpy(np.clip(index, 0, None)).to(z.device)])
     # Frames 0..window-2 have shorter histories: their windows start at frame 0 and repeat it; run
     # them exactly instead, from the one full run over the first window.
     out = decoder.heads(h[:, -1])
     head, _ = decoder.lstm(z[None, :window])
     out[: window - 1] = decoder.heads(head[0, : window - 1])
-    return regressor.denormalise_force(out).numpy()
+    return regressor.denormalise_force(out).cpu().numpy()
 
 
 def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = CLIP_FRAMES
@@ -133,14 +138,15 @@ def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
 
 def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | None = None,
                       options: ProcessOptions | None = None, window: int | None = CLIP_FRAMES, video: bool = True,
-                      progress: bool = True, overwrite: bool = False, reuse_processed: bool = True) -> PredictResult:
+                      progress: bool = True, overwrite: bool = False, reuse_processed: bool = True,
+                      device: str = "cpu") -> PredictResult:
     """The whole pipeline on a recording MCAP (force channel and ECM pose not needed). Existing
     outputs are refused unless `overwrite`; an existing `<id>.predict.processed.mcap` (the tracks of
     an earlier run) is reused unless `reuse_processed` is False."""
     src = Path(src)
     if not src.is_file():
         raise InputError(src, "recording not found")
-    regressor, spec = load_force_model(ckpt)
+    regressor, spec = load_force_model(ckpt, device)
     out_dir = Path(out_dir) if out_dir is not None else src.parent
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = output_paths(src, out_dir, video)

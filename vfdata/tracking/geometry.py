@@ -93,6 +93,9 @@ class TrackerOptions:
     # Reference points whose 8th neighbour is farther than this times the median are not picked (0: off);
     # see vfdata.tracking.sampling.isolated_points and docs/tracking.md ("Why it drifted").
     isolation_factor: float = ISOLATION_FACTOR
+    # Where the SIREN fit and the nearest neighbours run: "cpu" (a k-d tree), or a CUDA device (all
+    # distances at once on the GPU); `vfdata.device.resolve_device` turns --device into one.
+    device: str = "cpu"
 
 
 class GeometryTracker:
@@ -136,12 +139,15 @@ class GeometryTracker:
         center = 0.5 * (self.reference.min(axis=0) + self.reference.max(axis=0))
         half_extent = max(float(np.abs(self.reference - center).max()), 1e-6)
         generator = torch.Generator().manual_seed(seed)
-        self._net = Siren(3, 3, opt.hidden_features, opt.hidden_layers, opt.omega_0, generator=generator)
+        # Initialised on the CPU from the seeded generator, then moved: the same start on every device.
+        self._device = torch.device(opt.device)
+        self._net = Siren(3, 3, opt.hidden_features, opt.hidden_layers, opt.omega_0, generator=generator).to(
+            self._device)
         self._optimizer = Adam(self._net.parameters, lr=opt.learning_rate)
         self._input = torch.from_numpy(
             ((self.reference - center) * (opt.input_extent / half_extent)).astype(np.float32)
-        )
-        self._reference_t = torch.from_numpy(self.reference.astype(np.float32))
+        ).to(self._device)
+        self._reference_t = torch.from_numpy(self.reference.astype(np.float32)).to(self._device)
         # Subtracting the initial output makes the field start at zero displacement exactly while
         # keeping the SIREN initialisation of every layer.
         self._offset = self._net(self._input)
@@ -193,32 +199,38 @@ class GeometryTracker:
             self._prev_image = gray
 
         prev_matrix, prev_offset = self._llr_quadratic(previous, opt.lambda_prev)
-        llr_matrix = torch.from_numpy(self._ref_matrix + prev_matrix).float()
-        llr_offset = torch.from_numpy(self._ref_offset + prev_offset).float()
+        device = self._device
+        llr_matrix = torch.from_numpy(self._ref_matrix + prev_matrix).float().to(device)
+        llr_offset = torch.from_numpy(self._ref_offset + prev_offset).float().to(device)
 
         tree = None
-        if len(cloud) > 0:
+        if len(cloud) > 0 and device.type == "cpu":
             tree = cKDTree(cloud, leafsize=KDTREE_LEAF_SIZE, balanced_tree=False, compact_nodes=False)
-        cloud_t = torch.from_numpy(cloud.astype(np.float32))
+        cloud_t = torch.from_numpy(cloud.astype(np.float32)).to(device)
+
+        def nearest(query: torch.Tensor) -> torch.Tensor:
+            """Each query point's nearest cloud point: a k-d tree on the CPU, all distances on a GPU."""
+            if tree is not None:
+                return cloud_t[torch.from_numpy(tree.query(query.numpy())[1])]
+            return cloud_t[torch.cdist(query, cloud_t).argmin(dim=1)]
+
         for _ in range(opt.iterations):
             output, cache = self._net.forward(self._input)
             points = self._positions(output)
             if opt.visibility_every_iteration:
                 # Points entering the mask as they catch up with the tissue join the Chamfer term.
-                visible = self.visibility(points.numpy(), mask)
+                visible = self.visibility(points.cpu().numpy(), mask)
             # d loss / d points (mm), starting with both LLR terms at once.
             gradient = torch.addmm(llr_offset, llr_matrix, points, beta=-1.0)
-            if tree is not None and visible.any():
+            if len(cloud) > 0 and visible.any():
                 if visible.all():
-                    _, nearest = tree.query(points.numpy())
-                    _, grad = chamfer_term(points, cloud_t[torch.from_numpy(nearest)])
+                    _, grad = chamfer_term(points, nearest(points))
                     gradient.add_(grad, alpha=opt.lambda_chamfer)
                 else:
-                    seen = np.flatnonzero(visible)
-                    moving = points[torch.from_numpy(seen)]
-                    _, nearest = tree.query(moving.numpy())
-                    _, grad = chamfer_term(moving, cloud_t[torch.from_numpy(nearest)])
-                    gradient[torch.from_numpy(seen)] += grad.mul_(opt.lambda_chamfer)
+                    seen = torch.from_numpy(np.flatnonzero(visible)).to(device)
+                    moving = points[seen]
+                    _, grad = chamfer_term(moving, nearest(moving))
+                    gradient[seen] += grad.mul_(opt.lambda_chamfer)
             if flow is not None:
                 flowing, target_uv, mm_per_px = flow
                 cam = self.camera
@@ -227,7 +239,7 @@ class GeometryTracker:
             # points = reference + output_scale_mm * (output - offset): chain rule into the network.
             self._optimizer.step(self._net.backward(cache, gradient.mul_(opt.output_scale_mm)))
 
-        self._points = self._positions(self._net(self._input)).double().numpy()
+        self._points = self._positions(self._net(self._input)).double().cpu().numpy()
         visible = self.visibility(self._points, mask)
         self._prev_visible = visible
         return self._points.copy(), visible
@@ -280,9 +292,9 @@ class GeometryTracker:
             return None
         mm_per_px = previous_points[idx, 2] / (0.5 * (cam.fx + cam.fy))
         return (
-            torch.from_numpy(idx),
-            torch.from_numpy(new_uv[idx].astype(np.float32)),
-            torch.from_numpy(mm_per_px.astype(np.float32)),
+            torch.from_numpy(idx).to(self._device),
+            torch.from_numpy(new_uv[idx].astype(np.float32)).to(self._device),
+            torch.from_numpy(mm_per_px.astype(np.float32)).to(self._device),
         )
 
 

@@ -53,6 +53,17 @@ class Siren:
             weight.uniform_(-bound, bound, generator=generator)
             bias.uniform_(-1.0 / math.sqrt(fan_in), 1.0 / math.sqrt(fan_in), generator=generator)
 
+    def to(self, device: torch.device | str) -> Siren:
+        """The network on `device` (parameters and gradient moved, the views rebuilt); self."""
+        if self.parameters.device == torch.device(device):
+            return self
+        sizes = [tuple(w.shape) for w in self.weights]
+        self.parameters = self.parameters.to(device)
+        self.gradient = self.gradient.to(device)
+        self.weights, self.biases = _views(self.parameters, sizes)
+        self._weight_grads, self._bias_grads = _views(self.gradient, sizes)
+        return self
+
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         return self.forward(x)[0]
 

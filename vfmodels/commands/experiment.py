@@ -39,6 +39,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prompt", help="first-frame tissue prompt (box:x0,y0,x1,y1) for recordings whose metadata "
                                     "and manifest entry give none")
     p.add_argument("--workers", type=int, default=1, help="recordings processed in parallel (default 1)")
+    p.add_argument("--executor", default="local", choices=["local", "ray"],
+                   help="where processing jobs and training runs go: local (default: processing in --workers "
+                        "processes, runs one after the other) or ray (one task per recording and per run on a Ray "
+                        "cluster sharing OUT's file system: docs/cluster.md; the 'ray' extra)")
+    p.add_argument("--device", default="cpu",
+                   help="cpu (default), cuda or auto (CUDA when present): the geometry tracker of the processing "
+                        "and the training runs (Lightning's accelerator)")
+    p.add_argument("--ray-address", help="the Ray cluster (default: the running one, or a new local instance; "
+                                         "'auto': the cluster this machine belongs to)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")
     p.add_argument("--reports-only", action="store_true", help="only (re)write the tables and plots of OUT")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -60,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
     options = ExperimentOptions(seeds=args.seeds, epochs=args.epochs, variants=args.variants, ladder=args.ladder,
                                 depth=args.depth,
                                 segment=args.segment, prompt=args.prompt, workers=args.workers,
+                                executor=args.executor, ray_address=args.ray_address, device=args.device,
                                 max_frames=args.max_frames, progress=not args.quiet, train_args=args.train_args)
     if args.configs is not None:
         options.configs = args.configs

@@ -52,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
     p.add_argument("--pipelined", action="store_true",
                    help="image stages of the next frame in a second thread (2 cores; one more frame of delay)")
+    p.add_argument("--device", default="cpu", help="where the tracker's SIREN fit and nearest neighbours and the "
+                                                   "force model run: cpu (default), cuda (cuda:N), auto")
     p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no summary line")
     p.set_defaults(func=run)
@@ -89,6 +91,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     import cv2
     import torch
 
+    from vfdata.device import resolve_device, tracker_device_options
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.recording import layout
@@ -97,6 +100,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfmodels.live_session import LiveSession
 
     import_foxglove()  # the missing extra is said before anything else is opened
+    device = resolve_device(args.device)
+    tracker_options = tracker_device_options("geometry", device)
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     ckpt = checkpoint_file(args.ckpt)
@@ -106,7 +111,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     try:
         estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt,
                                             EngineOptions(depth=args.depth, segment=args.segment,
-                                                          depth_roi_margin_px=roi), up=up,
+                                                          depth_roi_margin_px=roi, tracker_options=tracker_options),
+                                            up=up, device=device,
                                             window=None if args.window == 0 else args.window,
                                             pipelined=args.pipelined)
         server = FoxgloveServer(args.host, args.port, record=args.record, overwrite=args.overwrite)

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from vfdata.device import DEVICE_HELP
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -37,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stream", action="store_true", help="run the live, frame-by-frame estimator")
     p.add_argument("--pipelined", action="store_true",
                    help="with --stream: image stages of the next frame in a second thread (2 cores)")
+    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
     p.add_argument("--threads", type=int, default=1,
                    help="torch/OpenCV threads (default 1, the fastest for per-frame work on a few cores)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -60,16 +63,21 @@ def run(args: argparse.Namespace) -> int:
     # two stages run at once), so one thread per stage is the fastest on a few cores.
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
+    from vfdata.device import resolve_device, tracker_device_options
+
     args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
+    args.device = resolve_device(args.device)
+    args.tracker_options = tracker_device_options("geometry", args.device)
     if args.stream:
         return _stream(args, window)
     from vfdata.processing import ProcessOptions
     from vfmodels.predict import predict_recording
 
-    options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames)
+    options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames,
+                             tracker_options=args.tracker_options)
     result = predict_recording(args.recording, args.ckpt, args.out, options, window=window, video=not args.no_video,
-                               progress=not args.quiet, overwrite=args.overwrite)
+                               progress=not args.quiet, overwrite=args.overwrite, device=args.device)
     print(f"{result.frames} frames; object frame X axis "
           f"{'from gravity (ECM pose)' if result.up_known else 'arbitrary (no ECM pose)'}")
     stages = {**result.stage_fps, "force": result.force_fps}
@@ -98,8 +106,9 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     with Recording.open(args.recording) as rec:
         estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm,
                                             recording_prompt(rec, args.recording, args.prompt),
-                                            EngineOptions(depth=args.depth, segment=args.segment), up=camera_up(rec),
-                                            window=window, pipelined=args.pipelined)
+                                            EngineOptions(depth=args.depth, segment=args.segment,
+                                                          tracker_options=args.tracker_options), up=camera_up(rec),
+                                            window=window, pipelined=args.pipelined, device=args.device)
         n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
         estimates, latencies = [], []
         for i in tqdm(range(n), desc="stream", unit="frame", disable=args.quiet):

@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,7 +15,9 @@ from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
+from vfdata.device import GPU_TRACKERS, tracker_device_options
 from vfdata.errors import InputError
+from vfdata.executor import run_jobs
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
 from vfmodels.experiment.variants import PROCESSINGS, derived_name
@@ -33,6 +34,7 @@ class ProcessJob:
     segment: str
     prompt: str | None
     max_frames: int | None
+    device: str = "cpu"  # the tracker's (`vfdata.device`)
 
 
 def derived_path(entry: ManifestEntry, tracker: str) -> Path:
@@ -63,17 +65,20 @@ def process(job: ProcessJob) -> str:
     import torch
 
     torch.set_num_threads(1)
+    tracker_options = tracker_device_options(job.tracker, job.device) if job.tracker in GPU_TRACKERS else {}
     process_recording(job.src, job.out, ProcessOptions(depth=job.depth, segment=job.segment, tracker=job.tracker,
                                                        prompt=job.prompt, max_frames=job.max_frames,
-                                                       progress=False))
+                                                       tracker_options=tracker_options, progress=False))
     return job.out
 
 
 def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgbm", segment: str = "colortrack",
             prompt: str | None = None, max_frames: int | None = None, workers: int = 1,
-            progress: bool = True) -> dict[str, float]:
+            progress: bool = True, executor: str = "local", ray_address: str | None = None,
+            device: str = "cpu") -> dict[str, float]:
     """Convert what is missing, then process every recording for each processing (`PROCESSINGS` key;
-    outputs that exist are kept; `prompt` for entries without their own). Returns wall seconds per step."""
+    outputs that exist are kept; `prompt` for entries without their own), one job per recording and
+    processing on `executor` (`vfdata.executor`). Returns wall seconds per step."""
     seconds = {}
     started = time.perf_counter()
     for entry in tqdm(entries, desc="convert", unit="recording", disable=not progress):
@@ -83,18 +88,12 @@ def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgb
     for name in trackers:
         recipe = PROCESSINGS[name]
         jobs += [ProcessJob(str(e.mcap), str(derived_path(e, name)), recipe.tracker, recipe.depth or depth,
-                            recipe.segment or segment, e.prompt or prompt, max_frames)
+                            recipe.segment or segment, e.prompt or prompt, max_frames, device)
                  for e in entries if not derived_path(e, name).is_file()]
     jobs = list({job.out: job for job in jobs}.values())  # entries splitting one recording share its jobs
     started = time.perf_counter()
     with tqdm(total=len(jobs), desc="process", unit="recording", disable=not progress or not jobs) as bar:
-        if workers > 1 and len(jobs) > 1:
-            with ProcessPoolExecutor(workers) as pool:
-                for _ in pool.map(process, jobs):
-                    bar.update()
-        else:
-            for job in jobs:
-                process(job)
-                bar.update()
+        for _ in run_jobs(process, jobs, executor, workers, ray_address):
+            bar.update()
     seconds["process"] = time.perf_counter() - started
     return seconds

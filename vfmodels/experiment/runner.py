@@ -21,7 +21,7 @@ import os
 import time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import lightning.pytorch as L
@@ -29,7 +29,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from vfdata.device import lightning_accelerator, resolve_device
 from vfdata.errors import InputError, VisionForceError
+from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfmodels.experiment.prepare import derived_path, prepare
 from vfmodels.experiment.report import write_reports
@@ -55,7 +57,10 @@ class ExperimentOptions:
     depth: str = "sgbm"
     segment: str = "colortrack"
     prompt: str | None = None  # first-frame prompt for recordings whose metadata and manifest entry have none
-    workers: int = 1  # recordings processed in parallel processes
+    workers: int = 1  # recordings processed in parallel processes (executor local)
+    executor: str = "local"  # where processing jobs and training runs go: local, or ray (docs/cluster.md)
+    ray_address: str | None = None  # the Ray cluster (None: the running one, or a new local instance)
+    device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (Lightning accelerator)
     max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
     train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
     progress: bool = True
@@ -146,6 +151,15 @@ def run_one(variant: Variant, seed: int, manifest: Path, run_dir: Path, options:
     return write_run(run_dir, predictions, summary, validation)
 
 
+def run_job(job: tuple) -> Path:
+    """One training run of the grid as a job (module level: it crosses to a Ray task); one torch
+    thread, as the local grid trains."""
+    variant, seed, manifest, run_dir, options, cache_dir = job
+    torch.set_num_threads(1)
+    run_one(variant, seed, manifest, run_dir, options, cache_dir)
+    return run_dir
+
+
 @dataclass
 class ExperimentResult:
     out: Path
@@ -164,8 +178,13 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
+    device = resolve_device(options.device)
+    if device != "cpu":
+        options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(device)}",
+                                               *options.train_args])
     seconds = prepare(list(manifest.entries), trackers, options.depth, options.segment, options.prompt,
-                      options.max_frames, options.workers, options.progress)
+                      options.max_frames, options.workers, options.progress, options.executor, options.ray_address,
+                      device)
     manifests = {t: tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
     (out / "experiment.json").write_text(json.dumps({
         "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,
@@ -178,13 +197,19 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     started = time.perf_counter()
     with tqdm(total=len(grid), initial=len(grid) - len(todo), desc="experiment", unit="run",
               disable=not options.progress) as bar:
-        for variant, seed in grid:
-            run_dir = run_folder(out, variant, seed)
-            if (variant, seed) in todo:
+        if options.executor == "local":
+            for variant, seed in todo:
                 bar.set_postfix_str(f"{variant.name} seed {seed}")
-                run_one(variant, seed, manifests[variant.tracker], run_dir, options, out / "cache")
+                run_one(variant, seed, manifests[variant.tracker], run_folder(out, variant, seed), options,
+                        out / "cache")
                 bar.update()
-            runs[variant.name].append(run_dir)
+        else:  # every run a task of its own; each writes its folder on the shared file system
+            jobs = [(v, s, manifests[v.tracker], run_folder(out, v, s), replace(options, progress=False),
+                     out / "cache") for v, s in todo]
+            for _ in run_jobs(run_job, jobs, options.executor, ray_address=options.ray_address):
+                bar.update()
+        for variant, seed in grid:
+            runs[variant.name].append(run_folder(out, variant, seed))
     seconds["train_test"] = time.perf_counter() - started
     started = time.perf_counter()
     paths = write_reports(out, manifest.path)
