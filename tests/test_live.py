@@ -291,3 +291,14 @@ def test_a_replay_at_its_rate_keeps_every_frame_or_skips_like_a_camera(recording
             assert indices == list(range(FRAMES)) and source.dropped == 0
             assert taken[-1].arrival_s - taken[0].arrival_s == pytest.approx((FRAMES - 1) / 30.0, abs=0.02)
             assert min(lag) >= 0 and lag[-1] - lag[1] > 0.3  # falling behind, ~67 ms a frame: it shows
+
+
+def test_the_foxglove_layout_in_docs_is_the_generated_one_and_names_served_topics():
+    import re
+
+    from vfdata.foxglove_layout import layout_json
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "foxglove_layout.json").read_text()
+    assert text == layout_json()  # regenerate: python -m vfdata.foxglove_layout > docs/foxglove_layout.json
+    named = set(re.findall(r'"(/[a-z_/]+)', text))
+    assert named and {t.split(".")[0] for t in named} <= set(LIVE_TOPICS)

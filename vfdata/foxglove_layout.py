@@ -1,0 +1,52 @@
+"""The Foxglove layout of our topics (docs/foxglove_layout.json): the left image with the tissue mask
+laid over it and the tracked points projected, the tissue cloud and tracked points in 3D in the object
+frame, and Fx, Fy, Fz of `/force/estimate` over time. The same layout serves `vfdata live` and the
+files (a recording opened with its derived and force files), since both have the same topics.
+
+    python -m vfdata.foxglove_layout > docs/foxglove_layout.json      # Foxglove: Layouts -> Import
+
+Built with the `foxglove-sdk` package's layout types (the extra `live`)."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from vfdata.foxglove_server import import_foxglove
+from vfdata.recording import layout
+
+
+def layout_json() -> str:
+    """The layout as Foxglove imports it (indented JSON)."""
+    import_foxglove()
+    import foxglove.layouts as fl
+
+    image = fl.ImagePanel(title="left image, tissue mask, tracked points", config=fl.ImageConfig(
+        image_mode=fl.ImageModeConfig(
+            image_topic=layout.LEFT_IMAGE, calibration_topic=layout.LEFT_INFO,
+            overlay_topics=[fl.ImageOverlayTopicConfig(id="mask", topic=layout.TISSUE_MASK, visible=True,
+                                                        opacity=0.35, pixel_alpha_mode="none")]),
+        topics={layout.TRACKING_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=6.0,
+                                                                                flat_color="#ffd400ff",
+                                                                                color_mode="flat")}))
+    scene = fl.ThreeDeePanel(title="tissue cloud and tracked points (object frame)", config=fl.ThreeDeeConfig(
+        follow_tf=layout.OBJECT_FRAME,
+        topics={layout.TISSUE_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=2.0,
+                                                                              color_mode="colormap",
+                                                                              color_field="z"),
+                layout.TRACKING_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=6.0,
+                                                                                color_mode="flat",
+                                                                                flat_color="#ffd400ff")}))
+    force = fl.PlotPanel(title="force on the tissue (object frame, N)", config=fl.PlotConfig(
+        paths=[fl.PlotSeries(value=f"{layout.FORCE_ESTIMATE}.wrench.force.{axis}", label=f"F{axis}",
+                             timestamp_method="headerStamp", enabled=True) for axis in "xyz"],
+        show_legend=True))
+    content = fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(proportion=1.2, content=image),
+        fl.SplitItem(proportion=1.0, content=fl.SplitContainer(direction="column", items=[
+            fl.SplitItem(content=scene), fl.SplitItem(content=force)]))])
+    return json.dumps(json.loads(fl.Layout(content=content).to_json()), indent=2) + "\n"
+
+
+if __name__ == "__main__":
+    sys.stdout.write(layout_json())
