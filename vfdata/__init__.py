@@ -6,6 +6,8 @@
 `vfdata.ForceClipDataset` and `vfdata.ForceDataModule` (torch, Lightning) load on first use so that
 the command line starts without them."""
 
+import importlib
+
 __version__ = "0.1.0"
 
 __all__ = ["ClipSpec", "DerivedRecording", "ForceClipDataset", "ForceDataModule", "Manifest", "ManifestEntry", "SPLITS",
@@ -29,7 +31,5 @@ _WHERE = {
 
 def __getattr__(name: str):
     if name in _WHERE:
-        import importlib
-
         return getattr(importlib.import_module(_WHERE[name]), name)
     raise AttributeError(f"module 'vfdata' has no attribute {name!r}")

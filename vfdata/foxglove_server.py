@@ -38,7 +38,7 @@ LIVE_TOPICS: dict[str, str] = {
 
 
 def import_foxglove():
-    try:
+    try:  # the optional extra 'live', imported when a server starts
         import foxglove
     except ImportError:
         raise VisionForceError("the live view needs the foxglove-sdk package: pip install 'visionforce[live]'"

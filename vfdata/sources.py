@@ -242,6 +242,7 @@ class VideoStereo:
 
 def recording_defaults(source: RecordingReplay, prompt: str | None) -> tuple[Prompt, np.ndarray | None]:
     """A replayed recording's prompt (given, else its metadata's) and gravity-up (its ECM pose)."""
+    # here, not at the top: processing pulls in torch (the tracker); a source alone does not need it
     from vfdata.processing import camera_up, recording_prompt
 
     return recording_prompt(source.recording, source.path, prompt), camera_up(source.recording)

@@ -11,6 +11,7 @@ process's settings as they are.
 
 from __future__ import annotations
 
+import argparse
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,8 +30,6 @@ def check_threads(threads: int | None) -> int | None:
 
 def positive_int(text: str) -> int:
     """argparse type of `--threads`: a whole number of at least 1."""
-    import argparse
-
     try:
         value = int(text)
     except ValueError:
@@ -57,7 +56,7 @@ def set_threads(threads: int | None = DEFAULT_THREADS) -> None:
 def thread_limit(threads: int | None = DEFAULT_THREADS) -> Iterator[int]:
     """Run a block with `threads` torch/OpenCV threads and restore the caller's counts afterwards;
     yields the torch thread count in force (the one stage rates are measured with)."""
-    import cv2
+    import cv2  # here, not at the top: the command line starts without torch
     import torch
 
     check_threads(threads)

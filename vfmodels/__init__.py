@@ -6,6 +6,8 @@ them (`regressor`), training (`train`: the LightningCLI behind train.py), predic
 The model classes load on first use (`vfmodels.SetTransformerLSTM`, ...), so that command-line tools
 can read the variant registry without importing torch."""
 
+import importlib
+
 __all__ = ["DepthViTLSTM", "ForceRegressor", "RGBResNet3D", "SetTransformerLSTM", "force_metrics",
            "grouped_force_metrics"]
 
@@ -21,7 +23,5 @@ _WHERE = {
 
 def __getattr__(name: str):
     if name in _WHERE:
-        import importlib
-
         return getattr(importlib.import_module(_WHERE[name]), name)
     raise AttributeError(f"module 'vfmodels' has no attribute {name!r}")

@@ -76,6 +76,7 @@ class RGBResNet3D(nn.Module):
     def __init__(self, weights_path: str | None = None, head_hidden: int = 64,
                  norm: Literal["group", "frozen", "batch"] | None = None):
         super().__init__()
+        # here, not at the top: torchvision loads only with the RGB baseline, not with the point models
         from torchvision.models.video import r3d_18
 
         norm = norm or ("frozen" if weights_path else "group")
@@ -158,6 +159,7 @@ class DepthViTLSTM(nn.Module):
 
     def __init__(self, weights_path: str | None = None, img_size: int = 224, lstm_hidden: int = 192):
         super().__init__()
+        # here, not at the top: timm loads only with the depth baseline, not with the point models
         import timm
         from timm.models import adapt_input_conv
         from timm.models.vision_transformer import checkpoint_filter_fn

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.clips.tokens import frame_rate, mirror_y, point_tokens, recording_side, top_bottom
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame
@@ -189,8 +189,7 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
                           camera.width)
     origin_uv = tuple(camera.project(frame.origin[None])[0])
     times = tracks.times_ns
-    fps = 1e9 / float(np.median(np.diff(times))) if len(times) > 1 else 30.0
-    with OverlayVideo(path, fps) as writer:
+    with OverlayVideo(path, frame_rate(times)) as writer:
         for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
             image = frame_image(rec, rec.frame_index_at(int(times[i])))
             label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"

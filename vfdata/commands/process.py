@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from vfdata.commands.outputs import skip_existing
-from vfdata.device import DEVICE_HELP
+from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
 from vfdata.errors import VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
 
@@ -81,8 +81,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _tracker_device(args: argparse.Namespace) -> dict:
-    from vfdata.device import resolve_device, tracker_device_options
-
     return tracker_device_options(args.tracker, resolve_device(args.device))
 
 
@@ -95,6 +93,7 @@ def process_job(job: tuple[str, str, object, bool]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: processing pulls in torch (the tracker); `vfdata --help` starts without it
     from vfdata.processing import ProcessOptions, default_output, preview_path, process_recording
 
     if not args.many and len(args.paths) > 2:

@@ -195,7 +195,7 @@ def sensor_to_object_matrix(value, path: Path) -> list[list[float]]:
     """The rotation from the force sensor's frame to the object frame, as a 3x3 list: given as 9 numbers
     (rows; a list, nested or flat, or text "r11,r12,...,r33") or as "xyz_deg:rx,ry,rz" (rotations about
     the fixed x, y, z axes in that order, degrees)."""
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # scipy only for this key: conversion starts without it
 
     try:
         if isinstance(value, str) and value.strip().lower().startswith("xyz_deg:"):
@@ -217,7 +217,7 @@ def sensor_to_object_matrix(value, path: Path) -> list[list[float]]:
 
 
 def _check_prompt(value, path: Path) -> None:
-    from vfdata.recon.prompt import Prompt
+    from vfdata.recon.prompt import Prompt  # vfdata.recon's package loads every stage: only when a prompt is given
 
     if not isinstance(value, str):
         raise InputError(path, f"'prompt' must be text such as box:x0,y0,x1,y1 or points:x,y;x,y, not {value!r}")

@@ -60,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the runner and report pull in torch; `vfdata --help` starts without it
     from vfmodels.experiment.report import summary_text, write_reports
     from vfmodels.experiment.runner import ExperimentOptions, run_experiment
 

@@ -11,6 +11,9 @@ import sys
 import threading
 from pathlib import Path
 
+from vfdata.device import resolve_device, tracker_device_options
+from vfdata.errors import InputError
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -61,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def open_source(args: argparse.Namespace):
     """(source, prompt, up) for the command's arguments."""
-    from vfdata.errors import InputError
+    # here, not at the top: sources and prompts pull in OpenCV; `vfdata --help` starts without it
     from vfdata.recon import Prompt
     from vfdata.sources import RecordingReplay, VideoStereo, recording_defaults
 
@@ -88,10 +91,10 @@ def open_source(args: argparse.Namespace):
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=None) -> int:
     """`ready(server)`, when given, is called once the server listens (tests use it to connect)."""
+    # here, not at the top: torch, the models and foxglove; `vfdata --help` starts without them
     import cv2
     import torch
 
-    from vfdata.device import resolve_device, tracker_device_options
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.recording import layout

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vfdata.device import DEVICE_HELP
+from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
+from vfdata.errors import OutputExistsError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -48,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def checkpoint_file(path: Path) -> Path:
     """A .ckpt file as given, or the best checkpoint of a run folder (its checkpoints/)."""
-    from vfmodels.train import best_checkpoint
+    from vfmodels.train import best_checkpoint  # Lightning: loaded by the commands that run, not by --help
 
     if path.is_dir():
         return best_checkpoint(path / "checkpoints" if (path / "checkpoints").is_dir() else path)
@@ -56,6 +57,7 @@ def checkpoint_file(path: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: torch and the models; `vfdata --help` starts without them
     import cv2
     import torch
 
@@ -63,8 +65,6 @@ def run(args: argparse.Namespace) -> int:
     # two stages run at once), so one thread per stage is the fastest on a few cores.
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    from vfdata.device import resolve_device, tracker_device_options
-
     args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
     args.device = resolve_device(args.device)
@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
 def _stream(args: argparse.Namespace, window: int | None) -> int:
     from tqdm import tqdm
 
+    # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
-    from vfdata.errors import OutputExistsError
     from vfdata.processing import camera_up, recording_prompt
     from vfdata.recording import Recording
     from vfdata.recording.derived import write_force_estimate

@@ -62,7 +62,7 @@ def convert(entry: ManifestEntry, progress: bool = False) -> None:
 
 def process(job: ProcessJob) -> str:
     """Run one job; one torch/BLAS thread, since recordings run side by side in processes."""
-    import torch
+    import torch  # here, not at the top: the experiment command's parser reads this module without torch
 
     torch.set_num_threads(1)
     tracker_options = tracker_device_options(job.tracker, job.device) if job.tracker in GPU_TRACKERS else {}
