@@ -30,6 +30,7 @@ from vfdata.recording.messages import (
     TransformStamped,
     WrenchStamped,
     encode_stamped_batch,
+    encode_tf_batch,
 )
 from vfdata.recording.writer import IMAGE_LEVEL, McapWriter
 
@@ -50,6 +51,7 @@ class StampedSeries:
     stamps_ns: np.ndarray
     values: np.ndarray
     frame_id: str
+    child_frame_id: str | None = None  # a TFMessage series (/tf): the transform's child frame
 
 
 def sensor_series(force: tuple[np.ndarray, np.ndarray, str], pose: tuple[np.ndarray, np.ndarray] | None
@@ -148,7 +150,9 @@ class _SeriesWriter:
         tables = []
         for i, s in enumerate(self.series):
             rows = slice(self.done[i], self.done[i] + int(counts[i]))
-            tables.append((s.stamps_ns[rows], encode_stamped_batch(s.stamps_ns[rows], s.frame_id, s.values[rows])))
+            encoded = (encode_tf_batch(s.stamps_ns[rows], s.frame_id, s.child_frame_id, s.values[rows])
+                       if s.child_frame_id else encode_stamped_batch(s.stamps_ns[rows], s.frame_id, s.values[rows]))
+            tables.append((s.stamps_ns[rows], encoded))
         used = [0] * len(self.series)
         bounds = [0, *(np.flatnonzero(np.diff(which)) + 1).tolist(), len(which)]
         for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
@@ -191,6 +195,9 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
     and the transform (stamped with the first frame) come from the camera model. `name` labels the
     progress bar."""
     first = int(frame_ns[0])
+    # The ECM pose also on /tf (world -> ecm), as ROS tools expect a moving frame.
+    series = [*series, *(StampedSeries(layout.TF, TFMessage.msgtype, s.stamps_ns, s.values, s.frame_id,
+                                       layout.ECM_FRAME) for s in series if s.topic == layout.ECM_POSE)]
     for transform in tf.transforms:
         transform.stamp_ns = first
     # The camera infos differ from frame to frame only by their stamp: encoded once, restamped.
@@ -198,7 +205,8 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
     workers = max(1, options.workers)
     try:
         with McapWriter(out, overwrite=overwrite, chunk_size=options.chunk_size,
-                        separate_topics=(layout.WRENCH, layout.ECM_POSE), chunk_level=IMAGE_LEVEL) as writer, \
+                        separate_topics=(layout.WRENCH, layout.ECM_POSE, layout.TF),
+                        chunk_level=IMAGE_LEVEL) as writer, \
                 ThreadPoolExecutor(workers) as pool:
             writer.add_metadata(layout.RECORDING_METADATA, record.to_record())
             writer.write(layout.TF_STATIC, tf)

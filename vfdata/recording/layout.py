@@ -19,7 +19,8 @@ RIGHT_INFO = "/stereo/right/camera_info"
 WRENCH = "/force_sensor/wrench"
 ECM_POSE = "/ecm/measured_cp"
 TF_STATIC = "/tf_static"
-TF = "/tf"  # the live view's object frame, sent with every frame (a late client misses /tf_static)
+TF = "/tf"  # the ECM pose as a transform (recordings); the live view's object frame with every frame
+ECM_FRAME = "ecm"  # child frame of the ECM pose on /tf (parent WORLD_FRAME)
 
 RECORDING_TOPICS: dict[str, str] = {
     LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
@@ -28,6 +29,7 @@ RECORDING_TOPICS: dict[str, str] = {
     RIGHT_INFO: "sensor_msgs/msg/CameraInfo",
     WRENCH: "geometry_msgs/msg/WrenchStamped",
     ECM_POSE: "geometry_msgs/msg/PoseStamped",
+    TF: "tf2_msgs/msg/TFMessage",  # the ECM pose again, world -> ecm (files from before have none)
     TF_STATIC: "tf2_msgs/msg/TFMessage",
 }
 REQUIRED_TOPICS = (LEFT_IMAGE, RIGHT_IMAGE, LEFT_INFO, RIGHT_INFO, WRENCH, TF_STATIC)
@@ -47,6 +49,7 @@ RGBD_TOPICS: dict[str, str] = {
     DEPTH_INFO: "sensor_msgs/msg/CameraInfo",
     WRENCH: "geometry_msgs/msg/WrenchStamped",
     ECM_POSE: "geometry_msgs/msg/PoseStamped",
+    TF: "tf2_msgs/msg/TFMessage",
     TF_STATIC: "tf2_msgs/msg/TFMessage",
 }
 RGBD_REQUIRED_TOPICS = (DEPTH_IMAGE, DEPTH_INFO, WRENCH, TF_STATIC)

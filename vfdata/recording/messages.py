@@ -347,6 +347,22 @@ def encode_stamped_batch(stamps_ns: np.ndarray, frame_id: str, values: np.ndarra
     return table
 
 
+def encode_tf_batch(stamps_ns: np.ndarray, frame_id: str, child_frame_id: str, values: np.ndarray) -> np.ndarray:
+    """CDR payloads of N TFMessages of one transform each, `frame_id` -> `child_frame_id`, values (N, 7):
+    translation m, rotation xyzw -> (N, L) uint8; row i is byte for byte the `TFMessage.encode()` of
+    message i (one message encoded as the template, then its stamp and values replaced per row)."""
+    stamps_ns = np.asarray(stamps_ns, np.int64)
+    values = np.ascontiguousarray(values, "<f8").reshape(-1, 7)
+    template = np.frombuffer(TFMessage([TransformStamped(0, frame_id, child_frame_id, (0.0,) * 3, (0.0,) * 4)])
+                             .encode(), np.uint8)
+    table = np.tile(template, (len(stamps_ns), 1))
+    sec, nanosec = np.divmod(stamps_ns, NS_PER_S)
+    table[:, 8:12] = sec.astype("<i4")[:, None].view(np.uint8)  # after encapsulation and the list length
+    table[:, 12:16] = nanosec.astype("<u4")[:, None].view(np.uint8)
+    table[:, -56:] = values.view(np.uint8)  # the seven float64 end the message
+    return table
+
+
 def decode_stamped_batch(payloads: np.ndarray, n_doubles: int, ros1: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(N, L) uint8 payloads of stamped messages whose body is `n_doubles` float64 (all of one length,
     so of one frame_id length) -> header stamps (N,) int ns, values (N, n_doubles). Little-endian CDR,
