@@ -27,9 +27,9 @@ from rosbags.typesys import Stores, get_typestore
 from tqdm import tqdm
 
 from vfdata.conversion.bag_index import IndexedBag, open_indexed_bag, ros2_storage
-from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, WRENCH_STAMPED, TopicChoice, topic_types
+from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, RGBD_DEPTH, WRENCH_STAMPED, TopicChoice, topic_types
 from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
-from vfdata.conversion.ros_images import RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
+from vfdata.conversion.ros_images import DEPTH_ENCODINGS, RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recording.cdr import CdrError
 from vfdata.recording.messages import (
@@ -159,6 +159,7 @@ class ImageStream:
     encoding: str = ""  # Image encoding, or CompressedImage format
     width: int = 0
     height: int = 0
+    depth: bool = False  # an RGB-D bag's depth topic (32FC1 metres allowed)
 
     @property
     def count(self) -> int:
@@ -212,7 +213,8 @@ def scan_bag(reader: AnyReader, path: Path, choice: TopicChoice, all_topics: boo
     wanted = {choice.left, choice.right, choice.force, choice.left_info, choice.right_info, choice.pose} - {None}
     topics = set(types) if all_topics else wanted
     counts = {name: info.msgcount for name, info in reader.topics.items()}
-    left, right = ImageStream(choice.left, types[choice.left]), ImageStream(choice.right, types[choice.right])
+    left = ImageStream(choice.left, types[choice.left])
+    right = ImageStream(choice.right, types[choice.right], depth=choice.how.get("right") == RGBD_DEPTH)
     images = {choice.left: left, choice.right: right}
     infos = {choice.left_info, choice.right_info} - {None}
     series = {choice.force: _SeriesReader(reader, path, choice.force, 6)}
@@ -370,7 +372,7 @@ def _scan_image(path: Path, stream: ImageStream, head: ImageHead, receive_ns: in
     encoding = head.encoding
     if stream.msgtype == IMAGE:
         width, height = head.width, head.height
-        if encoding not in RAW_ENCODINGS:
+        if encoding not in RAW_ENCODINGS and not (stream.depth and encoding in DEPTH_ENCODINGS):
             raise InputError(path, f"{stream.topic}: message {index}: unsupported image encoding '{encoding}' "
                                    f"(supported: {', '.join(RAW_ENCODINGS)})")
     else:

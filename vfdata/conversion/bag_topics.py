@@ -35,6 +35,7 @@ POSE_DEFAULTS = ("/ECM/measured_cp", "/dvrk/ECM/measured_cp", "/dvrk/ECM/positio
 DVRK_ARM_NAMESPACES = ("PSM1", "PSM2", "PSM3", "ECM", "MTML", "MTMR", "SUJ")
 # Names that say "force sensor": netft anywhere, or ati / ft / force_sensor as a whole name part.
 _SENSOR_NAME = re.compile(r"netft|(^|[/_])(ati|ft|force_sensor|ft_sensor|force_torque)([/_]|$)", re.IGNORECASE)
+RGBD_DEPTH = "RGB-D depth"  # TopicChoice.how of an RGB-D bag's depth topic (vfdata.conversion.rgbd_bags)
 NO_TOPIC = "none"  # `--pose-topic none`: leave the ECM pose out
 
 
@@ -81,6 +82,12 @@ def choose_topics(path: Path, types: dict[str, str], asked: BagTopics, use_camer
     force = _choose_force(path, types, asked.force, how)
     pose = _choose_pose(path, types, asked.pose, how)
     return TopicChoice(left, right, left_info, right_info, force, pose, how)
+
+
+def choose_force_and_pose(path: Path, types: dict[str, str], asked: BagTopics,
+                          how: dict[str, str]) -> tuple[str, str | None]:
+    """The force and (optional) pose topics, as `choose_topics` picks them (for RGB-D bags too)."""
+    return _choose_force(path, types, asked.force, how), _choose_pose(path, types, asked.pose, how)
 
 
 def _check_given(path: Path, types: dict[str, str], topic: str, allowed: tuple[str, ...], option: str) -> str:

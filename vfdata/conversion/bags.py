@@ -66,6 +66,7 @@ from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.image_messages import image_message
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_meta import recording_fields
+from vfdata.conversion.rgbd_bags import convert_rgbd_scanned, rgbd_choice, rgbd_topics
 from vfdata.conversion.ros_images import UnsupportedImage, compressed_format, compressed_to_bgr, raw_image_to_bgr
 from vfdata.conversion.write_recording import (
     camera_infos,
@@ -245,11 +246,25 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
         check_output(out, overwrite, inputs=[src, *([calibration] if calibration is not None else [])])
     calib = StereoCalibration.load(calibration) if calibration is not None else None
     with open_bag(src) as reader:
-        choice = choose_topics(src, topic_types(reader), topics or BagTopics(), use_camera_info=calib is None)
+        types, asked = topic_types(reader), topics or BagTopics()
+        rgbd = rgbd_topics(types, asked)
+        if rgbd is not None:
+            if calib is not None or meta:
+                raise InputError(src, "an RGB-D bag takes its cameras from its camera_info topics: --calibration "
+                                      "and --meta KEY=VALUE apply to stereo bags")
+            choice = rgbd_choice(src, types, *rgbd, asked)
+        else:
+            choice = choose_topics(src, types, asked, use_camera_info=calib is None)
         scan = scan_bag(reader, src, choice, progress=options.progress)
         try:
-            _convert_scanned(reader, src, out, overwrite, options, scan, choice, calib, calibration, pair_tolerance_ns,
-                             meta or {})
+            if rgbd is not None:
+                plan = plan_pairs(scan, pair_tolerance_ns)
+                check_force_span(scan, plan, options.force_gap_tolerance_ns)
+                convert_rgbd_scanned(reader, src, out, overwrite, options, scan, plan,
+                                     _stereo_messages(reader, scan, plan), (scan.left_info, scan.right_info))
+            else:
+                _convert_scanned(reader, src, out, overwrite, options, scan, choice, calib, calibration,
+                                 pair_tolerance_ns, meta or {})
         finally:
             close_scan(scan)
     return out

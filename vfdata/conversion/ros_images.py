@@ -15,6 +15,8 @@ RAW_ENCODINGS: dict[str, tuple[int, int]] = {
     "bayer_rggb16": (1, 2), "bayer_bggr16": (1, 2), "bayer_gbrg16": (1, 2), "bayer_grbg16": (1, 2),
     "yuv422": (2, 1), "uyvy": (2, 1), "yuv422_yuy2": (2, 1), "yuyv": (2, 1),
 }
+# Depth in metres (some RGB-D drivers): read by the RGB-D converter (vfdata.conversion.rgbd_bags), not as a picture.
+DEPTH_ENCODINGS = ("32FC1",)
 # To BGR. ROS bayer_rggb8 names the first 2x2 block, as OpenCV's RGGB-style codes do (its older
 # BG-style names for the same codes describe the second row; cv_bridge uses those).
 _COLOR_CODES = {
