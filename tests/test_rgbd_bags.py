@@ -106,3 +106,14 @@ def test_an_rgbd_bag_without_camera_info_is_one_clear_error(tmp_path):
     with pytest.raises(InputError, match=r"no /camera/color/camera_info beside /camera/color/image_raw"):
         convert_bag(bag, tmp_path / "rec.mcap", options=ConvertOptions(progress=False, workers=1))
     assert not (tmp_path / "rec.mcap").exists()
+
+
+def test_inspect_bag_reads_an_rgbd_bag_as_rgbd(tmp_path):
+    from vfdata.commands.inspect_bag import inspect_bag_text
+
+    bag = write_rgbd_bag(tmp_path / "rec.bag", False, "/camera/color/image_raw", "/camera/depth/image_rect_raw")
+    text = inspect_bag_text(bag)
+    lines = {line.split()[0]: line for line in text.splitlines() if line.startswith("/")}
+    assert "left images (RGB-D colour)" in lines["/camera/color/image_raw"]
+    assert "right images (RGB-D depth)" in lines["/camera/depth/image_rect_raw"]
+    assert "colour fx 50.0 px, depth fx 50.0 px" in text and "ready to convert (RGB-D layout)" in text

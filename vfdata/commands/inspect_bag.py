@@ -14,7 +14,7 @@ from rosbags.highlevel import AnyReader
 from tqdm import tqdm
 
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion import bag_scan, bag_topics, bags
+from vfdata.conversion import bag_scan, bag_topics, bags, rgbd_bags
 from vfdata.conversion.force_coverage import FORCE_GAP_PERIODS, MIN_FORCE_GAP_NS
 from vfdata.errors import InputError
 
@@ -111,8 +111,10 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
                      f"{reader.duration / 1e9:.3f} s)")
         choice = scan = None
         try:
-            choice = bag_topics.choose_topics(path, types, topics or bag_topics.BagTopics(),
-                                              use_camera_info=calibration is None)
+            asked = topics or bag_topics.BagTopics()
+            rgbd = rgbd_bags.rgbd_topics(types, asked)
+            choice = rgbd_bags.rgbd_choice(path, types, *rgbd, asked) if rgbd else bag_topics.choose_topics(
+                path, types, asked, use_camera_info=calibration is None)
             scan = bag_scan.scan_bag(reader, path, choice, all_topics=True, progress=progress)
             counts, receive = scan.counts, scan.receive_ns
             reading = scan.indexed.reading if scan.indexed is not None else STREAMING
@@ -191,6 +193,18 @@ def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tol
     lines.append(f"  force: {len(force.stamps_ns)} samples, frame '{force.frame_id}'"
                  + (f", {force.fallback_count} with header.stamp 0" if force.fallback_count else "")
                  + (f", {force.duplicate_count} repeated stamps dropped" if force.duplicate_count else ""))
+    if scan.choice.how.get("right") == bag_topics.RGBD_DEPTH:  # an RGB-D driver's bag: colour = left, depth = right
+        try:
+            color, depth = (bags.bag_camera_info(scan.path, topic, msg, frame) for topic, msg, frame in (
+                (scan.choice.left_info, scan.left_info, "color"), (scan.choice.right_info, scan.right_info, "depth")))
+            lines.append(f"  RGB-D camera: camera_info topics {scan.choice.left_info}, {scan.choice.right_info}; "
+                         f"colour fx {color.p[0, 0]:.1f} px, depth fx {depth.p[0, 0]:.1f} px")
+            bags.check_force_span(scan, plan, force_gap_ns)
+        except InputError as exc:
+            lines.append(f"  cannot convert: {exc.problem}")
+            return lines
+        lines.append("  ready to convert (RGB-D layout)")
+        return lines
     try:
         calib = StereoCalibration.load(calibration) if calibration is not None else None
         _left, right, tf, source = bags.camera_model(scan, calib, calibration)
