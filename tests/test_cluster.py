@@ -155,3 +155,34 @@ def test_an_experiment_on_ray_gives_the_local_metrics(ray_instance, tmp_path):
     for local, remote in zip(results["local"], results["ray"], strict=True):
         assert {k: v for k, v in local.items() if k not in timing} == \
             {k: v for k, v in remote.items() if k not in timing}
+
+
+@pytest.mark.slow
+def test_a_failing_ray_task_is_the_jobs_own_one_line_error(ray_instance, tmp_path):
+    from vfdata.commands.process import process_job
+    from vfdata.errors import InputError
+    from vfdata.processing import ProcessOptions
+
+    bad = tmp_path / "bad.mcap"
+    bad.write_text("not an MCAP")
+    with pytest.raises(InputError) as caught:
+        list(run_jobs(process_job, [(str(bad), str(tmp_path / "out.mcap"), ProcessOptions(progress=False), False)],
+                      "ray"))
+    assert str(caught.value).startswith(str(bad)) and "\n" not in str(caught.value)
+    assert not list(tmp_path.glob("*out.mcap*"))
+
+
+def test_our_errors_cross_process_boundaries_whole():
+    """A job's error comes back from a worker process (or a Ray task) as it was raised."""
+    import pickle
+
+    from vfdata.errors import FormatError, InputError, OutputError, OutputExistsError
+
+    for error in (InputError("a.mcap", "bad"), FormatError("b.mcap", "damaged"), OutputExistsError("c.mcap"),
+                  OutputError("d.mcap", "disk full")):
+        again = pickle.loads(pickle.dumps(error))
+        assert type(again) is type(error) and str(again) == str(error) and again.path == error.path
+    from vfdata.recording.mcapfile import CorruptChunkError
+
+    chunk = pickle.loads(pickle.dumps(CorruptChunkError("e.mcap", 1024, ["/tf"], "fails its CRC")))
+    assert chunk.chunk_offset == 1024 and chunk.topics == ["/tf"] and "byte 1024" in str(chunk)

@@ -8,6 +8,18 @@ from pathlib import Path
 class VisionForceError(Exception):
     """Base class: a problem the user can fix, reported as one line without a traceback."""
 
+    def __reduce__(self):
+        # Pickled as its message and attributes, whatever the subclass's __init__ takes: an error
+        # crosses back whole from a worker process or a Ray task (the default calls __init__(*args)).
+        return _rebuild, (type(self), self.args, self.__dict__)
+
+
+def _rebuild(cls: type, args: tuple, state: dict) -> VisionForceError:
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
 
 class InputError(VisionForceError):
     """A bad input file or folder: names the path and the problem."""
