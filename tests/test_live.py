@@ -302,3 +302,25 @@ def test_the_foxglove_layout_in_docs_is_the_generated_one_and_names_served_topic
     assert text == layout_json()  # regenerate: python -m vfdata.foxglove_layout > docs/foxglove_layout.json
     named = set(re.findall(r'"(/[a-z_/]+)', text))
     assert named and {t.split(".")[0] for t in named} <= set(LIVE_TOPICS)
+
+
+def test_velocities_of_a_stream_that_skips_frames_stay_per_second():
+    """Every second frame pushed (a camera the estimator could not keep up with): the model at 30
+    frames/s gives what it gives on the same pushes at 15 frames/s, the rate they really came at."""
+    from test_predict import _tracks
+
+    from vfdata.clips.spec import ClipSpec
+    from vfmodels.live import StreamingForceModel, skipped_frame_rate
+
+    assert skipped_frame_rate(30.0, np.array([0, 33_333_333, 66_666_667])) == 30.0
+    assert skipped_frame_rate(30.0, np.array([0, 36_000_000, 70_000_000])) == 30.0  # jitter
+    assert skipped_frame_rate(30.0, np.array([0, 100_000_000, 200_000_000])) == 10.0
+    reg = _regressor(1)
+    points, visible = _tracks(frames=24)
+    stamps = np.arange(24) * 33_333_333
+    results = {}
+    for fps in (30.0, 15.0):
+        stream = StreamingForceModel(reg, ClipSpec(fps=fps), np.eye(3), np.zeros(3), window=8)
+        out = [stream.push(s, p, v) for s, p, v in zip(stamps[::2], points[::2], visible[::2], strict=True)]
+        results[fps] = np.stack([r[1] for r in out[1:]] + [stream.flush()[1]])
+    np.testing.assert_allclose(results[30.0], results[15.0], rtol=1e-6, atol=1e-7)

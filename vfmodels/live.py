@@ -46,6 +46,16 @@ class ForceEstimate:
     latency_s: float  # wall time of the push that produced it (all stages + model)
 
 
+def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
+    """The rate velocities use over consecutive pushes: the model's `fps`, divided by the whole number
+    of frame periods between pushes when a source skipped frames (a live camera the estimator could
+    not keep up with: `vfdata live`), so a velocity stays mm/s. Jitter under half a period keeps `fps`."""
+    if len(stamps_ns) < 2:
+        return fps
+    steps = round(float(np.median(np.diff(stamps_ns.astype(np.float64)))) * fps / 1e9)
+    return fps / max(1, steps)
+
+
 class StreamingForceModel:
     """The model half of live estimation: object-frame tracks in, one frame at a time, forces out.
 
@@ -97,7 +107,7 @@ class StreamingForceModel:
         recent = list(self.recent)
         points = mirror_y(np.stack([p[1] for p in recent]), self.side)
         visible = np.stack([p[2] for p in recent])
-        fps = self.spec.fps or 30.0
+        fps = skipped_frame_rate(self.spec.fps or 30.0, np.array([p[0] for p in recent]))
         reference = mirror_y(self.reference, self.side)
         tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps,
                                      reference_mm=reference)
