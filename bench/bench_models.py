@@ -1,5 +1,7 @@
-"""Speed of the force models (SetTransformerLSTM, 256 points x 6 features, T = 16): the network of
-`configs/<model>.yaml`, the paper's `proposed` (default) or the project's smaller `visionforce`.
+"""Speed of the force models (SetTransformerLSTM, 256 points x the config's features, T = 16): the network
+of `configs/<model>.yaml`, the paper's `proposed` (default) or the project's smaller `visionforce`.
+Inference runs through `ForceRegressor` with the config's `symmetry_turns` (visionforce: each clip and its
+mirror, two network passes per prediction), as `train.py test` and `vfdata predict` run it.
 
 Prints, for each variant (eager / torch.compile, fp32 / bf16 autocast, fused / unfused attention):
 - inference throughput, batched (frames/s; target >= 2,000 on 2 CPU cores),
@@ -25,20 +27,20 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vfmodels import ForceRegressor, SetTransformerLSTM
 
-T, N, C = 16, 256, 6
+T, N = 16, 256
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-def network_args(model: str) -> dict:
-    """The SetTransformerLSTM arguments of a training config (`configs/<model>.yaml`)."""
+def config_args(model: str) -> tuple[dict, int]:
+    """The SetTransformerLSTM arguments and the `symmetry_turns` of a training config (`configs/<model>.yaml`)."""
     config = yaml.safe_load((CONFIGS / f"{model}.yaml").read_text())
-    return dict(config["model"]["model"]["init_args"])
+    return dict(config["model"]["model"]["init_args"]), int(config["model"].get("symmetry_turns", 0))
 
 
-def clips(batch: int, device: str) -> dict[str, torch.Tensor]:
+def clips(batch: int, channels: int, device: str) -> dict[str, torch.Tensor]:
     g = torch.Generator().manual_seed(0)
     return {
-        "tokens": torch.randn(batch, T, N, C, generator=g).to(device),
+        "tokens": torch.randn(batch, T, N, channels, generator=g).to(device),
         "valid": (torch.rand(batch, T, N, generator=g) > 0.1).to(device),
         "force": torch.randn(batch, T, 3, generator=g).to(device),
     }
@@ -72,23 +74,26 @@ def attention(fused: bool):
 
 def bench_variant(compiled: bool, bf16: bool, fused: bool, args) -> dict[str, float]:
     torch.manual_seed(0)
-    model = SetTransformerLSTM(**network_args(args.model)).to(args.device)
+    network, turns = config_args(args.model)
+    model = SetTransformerLSTM(**network).to(args.device)
     run = torch.compile(model) if compiled else model
+    regressor = ForceRegressor(model, symmetry_turns=turns)
+    object.__setattr__(regressor, "_compiled", run)  # as ForceRegressor(compile_model=True) holds it
+    channels = network["in_features"]
     out = {}
 
-    model.eval()
-    batch = clips(args.batch, args.device)
-    single = clips(1, args.device)
+    regressor.eval()
+    batch = clips(args.batch, channels, args.device)
+    single = clips(1, channels, args.device)
     with torch.inference_mode(), precision(bf16, args.device), attention(fused):
-        s, cpu = timed(lambda: run(batch["tokens"], batch["valid"]), args.seconds, args.device)
+        s, cpu = timed(lambda: regressor(batch), args.seconds, args.device)
         out["infer_fps"], out["infer_fps_cpu"] = args.batch * T / s, args.batch * T / cpu
-        s, cpu = timed(lambda: run(single["tokens"], single["valid"]), args.seconds, args.device)
+        s, cpu = timed(lambda: regressor(single), args.seconds, args.device)
         out["latency_ms"], out["latency_ms_cpu"] = s * 1e3, cpu * 1e3
 
-    model.train()
-    regressor = ForceRegressor(model)
+    regressor.train()
     optimiser = regressor.configure_optimizers()
-    train_batch = clips(args.train_batch, args.device)
+    train_batch = clips(args.train_batch, channels, args.device)
 
     def step():
         with precision(bf16, args.device), attention(fused):
@@ -124,9 +129,10 @@ def main() -> None:
         compiled, precision_name, attn = args.variant.split("-")
         variants = [(compiled == "compiled", precision_name == "bf16", attn == "fused")]
     device_name = torch.cuda.get_device_name() if args.device == "cuda" else f"CPU, {args.threads} threads"
+    network, turns = config_args(args.model)
     print(
-        f"SetTransformerLSTM of configs/{args.model}.yaml, clips of T={T} frames x N={N} points x C={C}; "
-        f"{device_name}; "
+        f"SetTransformerLSTM of configs/{args.model}.yaml, clips of T={T} frames x N={N} points x "
+        f"C={network['in_features']}, {max(1, 2 * turns)} view(s) per prediction; {device_name}; "
         f"inference batch {args.batch} clips, training batch {args.train_batch} clips"
     )
     print("wall figures, and in brackets the same from this process's CPU time / threads (what the cores "

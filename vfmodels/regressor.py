@@ -135,11 +135,13 @@ class ForceRegressor(L.LightningModule):
         turns = self.symmetry_turns
         if self.training or not turns:
             return model(self.normalise_input(x), valid)
-        force_n = torch.zeros(*x.shape[:2], 3, device=x.device)
-        for view in symmetry_views(turns, device=x.device):
-            turned = (x.float().unflatten(-1, (-1, 3)) @ view.T).flatten(-2)
-            force_n += self.denormalise_force(model(self.normalise_input(turned), valid)) @ view
-        return self.normalise_force(force_n / (2 * turns))
+        # All views in one batch: one network pass instead of 2 * turns.
+        views = torch.stack(symmetry_views(turns, device=x.device))  # (V, 3, 3)
+        turned = torch.einsum("vij,...kj->v...ki", views, x.float().unflatten(-1, (-1, 3))).flatten(-2)
+        both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
+        force_n = self.denormalise_force(model(self.normalise_input(turned.flatten(0, 1)), both))
+        back = torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views)
+        return self.normalise_force(back.mean(0))
 
     def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
         """Forces (B, T, 3) in N."""
