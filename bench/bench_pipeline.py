@@ -36,11 +36,11 @@ def simulated_recording(workdir: Path, frames: int) -> Path:
     from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
     from vfdata.sim import synthesize
 
-    manifest = synthesize("mini", workdir, seed=0, workers=1, progress=False, frames=frames)
+    # A workdir left by an earlier run (perhaps with another --frames) is replaced, not trusted.
+    manifest = synthesize("mini", workdir, seed=0, workers=1, progress=False, frames=frames, overwrite=True)
     raw = manifest.parent / "mini_002"  # the test recording (90 degrees)
     out = workdir / "mini_002.mcap"
-    if not out.is_file():
-        convert_raw_folder(raw, out, options=ConvertOptions(progress=False))
+    convert_raw_folder(raw, out, overwrite=True, options=ConvertOptions(progress=False))
     return out
 
 
