@@ -15,6 +15,7 @@ import numpy as np
 from rosbags.highlevel import AnyReader
 
 from vfdata import __version__
+from vfdata.conversion.bag_camera_info import bag_camera_info
 from vfdata.conversion.bag_scan import BagScan, deserialize, image_message_of
 from vfdata.conversion.bag_topics import (
     CAMERA_INFO,
@@ -92,7 +93,6 @@ def convert_rgbd_scanned(reader: AnyReader, src: Path, out: Path, overwrite: boo
                          scan: BagScan, plan, messages, infos) -> None:
     """Write an RGB-D bag's paired frames (`plan`, `messages` of the stereo converter; colour = left,
     depth = right) with the camera `infos` (colour, depth) of the bag."""
-    from vfdata.conversion.bags import bag_camera_info
 
     color_info = bag_camera_info(scan.path, scan.choice.left_info, infos[0], layout.COLOR_FRAME)
     depth_info = bag_camera_info(scan.path, scan.choice.right_info, infos[1], layout.DEPTH_FRAME)
