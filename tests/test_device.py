@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from clip_fixtures import single_thread  # noqa: F401  (one torch thread per test)
 
 from vfdata.cli import main
 from vfdata.device import resolve_device, tracker_device_options
@@ -20,12 +21,6 @@ def no_cuda(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_devices_resolve_and_cuda_without_one_is_refused(no_cuda):

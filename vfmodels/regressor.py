@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from lightning.pytorch.utilities import rank_zero_info
 from torch import nn
 
-from vfdata.clips.tokens import latest_clip_frames
+from vfdata.clips.tokens import latest_clip_frames, turn_about_z
 from vfdata.errors import InputError
 from vfdata.weights import load_weights
 from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
@@ -298,12 +298,8 @@ class ForceRegressor(L.LightningModule):
 def symmetry_views(turns: int, device: torch.device | str = "cpu") -> list[torch.Tensor]:
     """The 2 * `turns` (3, 3) orthogonal maps of the object frame that the tube is (nearly) symmetric
     under: turns about Z by 360/`turns` degrees, each without and with the mirror across XZ (y negated)."""
-    views = []
-    for k in range(turns):
-        c, s = np.cos(2 * np.pi * k / turns), np.sin(2 * np.pi * k / turns)
-        turn = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float32, device=device)
-        views += [turn, turn @ torch.diag(torch.tensor([1.0, -1.0, 1.0], device=device))]
-    return views
+    return [torch.as_tensor(turn_about_z(2 * np.pi * k / turns, mirror), dtype=torch.float32, device=device)
+            for k in range(turns) for mirror in (False, True)]
 
 
 def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
