@@ -26,8 +26,9 @@ import numpy as np
 
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError
-from vfdata.recon import Prompt, estimate_object_frame, make_depth_estimator, make_segmenter, tissue_cloud
-from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view
+from vfdata.recon import Prompt, make_depth_estimator, make_segmenter, tissue_cloud
+from vfdata.recon.cloud import grazing_pixels
+from vfdata.recon.object_frame import ObjectFrame, cross_checked_frame, origin_cut_by_view
 from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
 from vfdata.tracking.registry import FrameInputs, Tracker, make_tracker
 
@@ -273,7 +274,9 @@ class FrameEngine:
         elif self.options.object_frame == "camera":
             self.frame = camera_frame()
         else:
-            self.frame = estimate_object_frame(first.cloud_mm, self.up)
+            frontal = tissue_cloud(first.depth_mm, first.mask & ~grazing_pixels(first.depth_mm, self.camera),
+                                   self.camera)
+            self.frame = cross_checked_frame(first.cloud_mm, frontal, self.up)
         self.origin_cut = self.options.object_frame in ("auto", "tissue") and bool(
             origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
         if self.origin_cut:

@@ -271,6 +271,9 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "object_frame_kind": engine.frame.diagnostics.get("kind", "tissue"),
         "camera_frame_id": layout.DEPTH_FRAME if rec.is_rgbd else layout.LEFT_FRAME,
         "origin_cut_by_view": str(engine.origin_cut).lower(),
+        # the full cloud's axis vs its frontal part's (object_frame.cross_checked_frame)
+        "object_frame_check": json.dumps({k: engine.frame.diagnostics[k] for k in ("axis_check_deg", "axis_from")
+                                          if k in engine.frame.diagnostics}),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
         "stage_threads": str(threads),

@@ -107,6 +107,29 @@ def backproject_binned(
     return np.stack([x_s[keep] / n, y_s[keep] / n, z_s[keep] / n], axis=1).astype(np.float32)
 
 
+def grazing_pixels(depth_mm: np.ndarray, camera: PinholeCamera, max_angle_deg: float = 75.0,
+                   step_px: int = 2) -> np.ndarray:
+    """(H, W) bool: pixels whose surface is seen more than `max_angle_deg` away from its viewing ray,
+    or whose surface normal is unknown (no depth within `step_px` either way). These are the flying
+    pixels of stereo at an occluding edge: beside an instrument shaft lying over the tissue, SGBM and
+    the smoothing carry the shaft's depth into a band of tissue pixels, a steep ramp toward the camera
+    (on the simulator's glove_011 a quarter of the first cloud). The tube's own silhouette rims are
+    steep too, so this is a filter for a cross-check, not for every cloud."""
+    z = np.asarray(depth_mm, dtype=np.float32)
+    gx, gy = _ray_grids(camera)
+    points = np.stack([gx * z, gy * z, z], axis=-1)
+    s = step_px
+    du = np.full_like(points, np.nan)
+    dv = np.full_like(points, np.nan)
+    du[:, s:-s] = points[:, 2 * s:] - points[:, : -2 * s]
+    dv[s:-s] = points[2 * s:] - points[: -2 * s]
+    normal = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        norms = np.linalg.norm(normal, axis=-1) * np.linalg.norm(points, axis=-1)
+        cos = np.abs((normal * points).sum(axis=-1)) / norms
+    return ~(cos >= np.float32(np.cos(np.radians(max_angle_deg))))  # NaN (no normal) counts as grazing
+
+
 @functools.lru_cache(maxsize=4)
 def _ray_grids(camera: PinholeCamera) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel x/z and y/z of the viewing rays."""
