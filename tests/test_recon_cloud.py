@@ -91,3 +91,24 @@ def test_empty_mask_and_bad_inputs():
         tissue_cloud(depth[:10], mask, CAM)
     with pytest.raises(BackendError, match="auto, numpy, open3d"):
         tissue_cloud(depth, mask, CAM, backend="pcl")
+
+
+def test_grazing_pixels_are_the_steep_ramp_not_the_frontal_surface():
+    from vfdata.recon.cloud import grazing_pixels
+
+    # A frontal plane at 100 mm, with a band of rows whose depth ramps toward the camera (the depth
+    # of an instrument above the tissue, smeared into tissue pixels by the stereo matcher).
+    depth = np.full((CAM.height, CAM.width), 100.0, np.float32)
+    depth[200:215] = np.linspace(100.0, 70.0, 15, dtype=np.float32)[:, None]  # 2 mm per pixel row
+    graze = grazing_pixels(depth, CAM, max_angle_deg=75.0)
+    assert not graze[100:180, 50:600].any(), "a frontal surface is not grazing"
+    assert graze[203:212, 50:600].all(), "a ramp of 2 mm depth per pixel at 0.18 mm per pixel is"
+    # The border, where no normal can be formed, counts as grazing (unknown).
+    assert graze[0].all() and graze[:, 0].all()
+    # A cylinder's frontal face is kept; its rims, seen edge-on, are not.
+    depth, mask = _cylinder_depth()
+    graze = grazing_pixels(depth, CAM)
+    rows = np.nonzero(mask[:, int(CAM.cx)])[0]
+    middle = rows[len(rows) // 2]
+    assert not graze[middle - 10 : middle + 10, 200:440].any()
+    assert graze[rows[0], 200:440].all() and graze[rows[-1], 200:440].all()

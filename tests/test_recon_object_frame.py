@@ -154,3 +154,44 @@ def test_origin_cut_by_view_flags_a_tissue_that_runs_out_of_the_image(base_mm, c
     rotation = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # columns X, Y, Z = -y
     frame = ObjectFrame(rotation, np.array([0.0, base_mm, 100.0]), up_known=True, score_deg=0.0)
     assert origin_cut_by_view(points, frame, camera) is cut
+
+
+def _occluder_band(rng, rotation, n, length=60.0, r_wide=10.0, distance=120.0, reach=25.0):
+    """A sheet of points rising from the tube's upper flank over its wide half toward the camera:
+    what an instrument shaft lying over the tissue leaves in a stereo cloud (its depth bled into a
+    band of tissue pixels)."""
+    z = rng.uniform(0, length / 2, n)
+    s = rng.uniform(0, 1, n)
+    base = np.outer(z - length / 2, rotation[:, 2]) + r_wide * rotation[:, 0] + np.array([0.0, 0.0, distance])
+    toward = -base / np.linalg.norm(base, axis=1, keepdims=True)
+    return base + (s * reach)[:, None] * (toward + 0.6 * rotation[:, 0])
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_cross_check_recovers_the_axis_an_occluder_band_turned(seed):
+    from vfdata.recon.object_frame import cross_checked_frame
+
+    rng = np.random.default_rng(seed)
+    rotation = _side_view_rotation(rng)
+    tube = tapered_tube(rng, rotation)
+    cloud = np.vstack([tube, _occluder_band(rng, rotation, 1000)])
+    true_z = rotation[:, 2]
+    assert _angle_deg(estimate_object_frame(cloud).z_axis, true_z) > 15.0, "the band must turn the plain fit"
+    frame = cross_checked_frame(cloud, tube)
+    assert _angle_deg(frame.z_axis, true_z) < 3.0 and frame.z_axis @ true_z > 0
+    assert frame.diagnostics["axis_from"] == "frontal" and frame.diagnostics["axis_check_deg"] > 15.0
+
+
+def test_cross_check_keeps_the_full_cloud_when_both_agree_or_the_frontal_part_is_too_small():
+    from vfdata.recon.object_frame import cross_checked_frame
+
+    rng = np.random.default_rng(5)
+    tube = tapered_tube(rng, _side_view_rotation(rng))
+    plain = estimate_object_frame(tube)
+    frame = cross_checked_frame(tube, tube[::2])
+    np.testing.assert_allclose(frame.rotation, plain.rotation)
+    np.testing.assert_allclose(frame.origin, plain.origin)
+    assert frame.diagnostics["axis_from"] == "cloud"
+    again = cross_checked_frame(tube, tube[:10])  # too few frontal points to fit: no check
+    np.testing.assert_allclose(again.rotation, plain.rotation)
+    assert "axis_from" not in again.diagnostics
