@@ -384,6 +384,31 @@ def test_polar_features_place_each_point_around_the_axis():
     np.testing.assert_allclose(tokens[1, 0, 3:6], [1.0, 2.0, 3.0], atol=1e-6)  # displacement, mm
 
 
+def test_polar_z_counts_the_place_along_z_from_the_tip_whatever_the_origin():
+    from vfdata.clips.tokens import point_features, transform_tokens, turn_about_z
+
+    rng = np.random.default_rng(3)
+    ref = np.column_stack([rng.normal(0, 8, 40), rng.normal(0, 8, 40), rng.uniform(0, 60, 40)])
+    points = np.stack([ref, ref + rng.normal(0, 1, ref.shape)])
+    visible = np.ones((2, 40), bool)
+    visible[:, 5] = False  # never seen: no place, no token
+    tokens, ok = point_features(points, visible, [(0, 2)], 30.0, "polar_z_disp_vel")
+    assert tokens.shape == (2, 40, 12) and not ok[:, 5].any()
+    along = tokens[0, :, 3:6]
+    seen = np.arange(40) != 5
+    tip = np.percentile(ref[seen, 2], 98)
+    np.testing.assert_allclose(along[seen, 2], ref[seen, 2] - tip, atol=1e-4)
+    assert np.abs(along[:, :2]).max() == 0.0
+    # An origin 20 mm further along Z (a view that cut the clamped end off) changes no token.
+    shifted, _ = point_features(points + [0.0, 0.0, 20.0], visible, [(0, 2)], 30.0, "polar_z_disp_vel")
+    np.testing.assert_allclose(shifted, tokens, atol=1e-4)
+    # The tube's symmetries act on it as on every other channel: the tokens of turned and mirrored
+    # points are the turned and mirrored tokens.
+    m = turn_about_z(0.7, mirror=True)
+    moved, _ = point_features(points @ m.T, visible, [(0, 2)], 30.0, "polar_z_disp_vel")
+    np.testing.assert_allclose(moved[:, seen], transform_tokens(tokens, m)[:, seen], atol=1e-4)
+
+
 def test_the_one_line_ways_in_and_denormalise(dataset_root):
     """from_manifest for the dataset and the data module; a network's output to N with the training
     split's statistics, as ForceRegressor does it."""

@@ -12,11 +12,11 @@ from vfdata.errors import VisionForceError
 Input = Literal["tracks", "cloud", "rgb", "depth"]
 Source = Literal["processed", "ground_truth", "ground_truth_surface"]
 Frame = Literal["object", "camera"]
-Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel"]
+Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel", "polar_z_disp_vel"]
 Subset = Literal["all", "top_bottom_20"]
 
 FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "disp": 3, "ref_disp_vel": 9,
-                    "polar_disp_vel": 9}
+                    "polar_disp_vel": 9, "polar_z_disp_vel": 12}
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 
@@ -38,7 +38,9 @@ class ClipSpec:
             first frame, mm, + velocity: deformation, not where the point is) or ref_disp_vel (that
             first-frame position, the displacement and the velocity) or polar_disp_vel (where the point sits
             around the object's Z axis on its first frame as (cos th0, sin th0, r0 mm), th0 measured from X =
-            up, then the displacement and the velocity: no position along Z, so no origin needed).
+            up, then the displacement and the velocity: no position along Z, so no origin needed) or
+            polar_z_disp_vel (the same with (0, 0, z0 - z_tip mm) after the polar place: the place along Z
+            counted from the tissue's free end, which a view cutting the clamped end off does not move).
         subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
         clip_frames: frames per clip (T).
         stride: frames between clip starts.

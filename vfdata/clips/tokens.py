@@ -105,12 +105,15 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
     parts = []
     if "disp" in features:
         ref = reference_positions(points_mm, valid) if reference_mm is None else np.asarray(reference_mm, float)
-        ok = ok & np.isfinite(ref).all(axis=-1)[None]
+        has_ref = np.isfinite(ref).all(axis=-1)
+        ok = ok & has_ref[None]
         ref = np.nan_to_num(ref)
         if features.startswith("ref"):
             parts.append(np.broadcast_to(ref, p.shape))
         elif features.startswith("polar"):
             parts.append(np.broadcast_to(polar_place(ref), p.shape))
+            if features.startswith("polar_z"):
+                parts.append(np.broadcast_to(along_from_tip(ref, has_ref), p.shape))
         parts.append(p - ref)
     elif features in ("pos_vel", "pos"):
         parts.append(p)
@@ -134,6 +137,20 @@ def polar_place(reference_mm: np.ndarray) -> np.ndarray:
     r = np.hypot(ref[:, 0], ref[:, 1])
     th = np.arctan2(ref[:, 1], ref[:, 0])
     return np.stack([np.cos(th), np.sin(th), r], axis=-1)
+
+
+def along_from_tip(reference_mm: np.ndarray, valid: np.ndarray, tip_percentile: float = 98.0) -> np.ndarray:
+    """(N, 3) object-frame positions -> (N, 3) (0, 0, z - z_tip mm): each point's place along Z counted
+    from the tissue's free end (the `tip_percentile` of the valid points' z), not from the origin. A view
+    that cuts the clamped end off moves the origin (18-21 mm on glove_016 and colon_006) but not the
+    tip; a lever arm and an axial strain need a place along Z, and any fixed reference serves a strain.
+    A 3-vector with zero x, y, so turns about Z and the mirror leave it alone."""
+    ref = np.asarray(reference_mm, dtype=np.float64)
+    z = ref[np.asarray(valid, dtype=bool), 2]
+    tip = float(np.percentile(z, tip_percentile)) if len(z) else 0.0
+    out = np.zeros_like(ref)
+    out[:, 2] = ref[:, 2] - tip
+    return out
 
 
 def mirror_tokens(tokens: np.ndarray) -> np.ndarray:
