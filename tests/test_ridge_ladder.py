@@ -58,7 +58,7 @@ def test_ladder_variants_replace_one_stage_each():
         assert ALL_VARIANTS[f"{model}@truedepth"].tracker == "truedepth"
         spec = config_spec(runner.CONFIGS / base.config, ALL_VARIANTS[f"{model}@surface"].overrides)
         assert spec.source == "ground_truth_surface"
-    assert config_spec(runner.CONFIGS / "visionforce.yaml").features == "polar_disp_vel"
+    assert config_spec(runner.CONFIGS / "visionforce.yaml").features == "polar_z_disp_vel"
     names = [v.name for v in runner.ExperimentOptions(variants=["visionforce"], ladder=True).chosen()]
     assert names[0] == "visionforce" and set(LADDER) <= set(names)
 
