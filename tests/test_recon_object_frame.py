@@ -195,3 +195,16 @@ def test_cross_check_keeps_the_full_cloud_when_both_agree_or_the_frontal_part_is
     again = cross_checked_frame(tube, tube[:10])  # too few frontal points to fit: no check
     np.testing.assert_allclose(again.rotation, plain.rotation)
     assert "axis_from" not in again.diagnostics
+
+
+def test_size_points_decide_the_wide_end():
+    """The axis from one cloud, the wide end from another's silhouette: a tube tapering the other way
+    turns +Z round (and the origin to the other end)."""
+    rng = np.random.default_rng(11)
+    rotation = _side_view_rotation(rng)
+    points = tapered_tube(rng, rotation)
+    reversed_taper = tapered_tube(rng, rotation, r_wide=6.0, r_narrow=10.0)
+    plain = estimate_object_frame(points)
+    turned = estimate_object_frame(points, size_points=reversed_taper)
+    assert plain.z_axis @ rotation[:, 2] > 0.99 and turned.z_axis @ rotation[:, 2] < -0.99
+    assert np.linalg.norm(turned.origin - plain.origin) > 40.0  # the 60 mm tube's other end

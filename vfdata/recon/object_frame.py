@@ -92,14 +92,16 @@ def hemisphere_directions(steps: int = CANDIDATE_STEPS) -> np.ndarray:
 
 
 def estimate_object_frame(
-    points: np.ndarray, up: np.ndarray | None = None, *, steps: int = CANDIDATE_STEPS, refine: int = 3
+    points: np.ndarray, up: np.ndarray | None = None, *, steps: int = CANDIDATE_STEPS, refine: int = 3,
+    size_points: np.ndarray | None = None,
 ) -> ObjectFrame:
     """The tissue's object frame from its (N, 3) point cloud (see the module docstring).
 
     `up` is gravity-up in the same coordinates as `points` (e.g. `up_in_camera` of the first frame's
     ECM pose); without it X is chosen deterministically (the image's up direction, -y of the camera,
     made perpendicular to Z) and `up_known` is False. `refine` re-slices along the found axis that
-    many times, which removes the candidate grid's quantisation."""
+    many times, which removes the candidate grid's quantisation. `size_points` (M, 3), when given, are
+    the cloud whose silhouette widths decide which end is the wide one (default: `points`)."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError("tissue cloud", f"expected (N, 3) points, got shape {pts.shape}")
@@ -147,7 +149,8 @@ def estimate_object_frame(
 
     # +Z toward the narrower end: the slices' size decreases along +Z.
     z = axis / np.linalg.norm(axis)
-    t, size = slab_widths(local, z, view=centre)
+    sized = local if size_points is None else np.asarray(size_points, dtype=np.float64) - centre
+    t, size = slab_widths(sized[np.isfinite(sized).all(axis=1)], z, view=centre)
     slope = _robust_slope(t, size)
     if slope > 0:
         z = -z
@@ -196,7 +199,10 @@ def cross_checked_frame(cloud_mm: np.ndarray, frontal_mm: np.ndarray, up: np.nda
     the two never differ by more than 12 deg there)."""
     frame = estimate_object_frame(cloud_mm, up)
     try:
-        frontal = estimate_object_frame(frontal_mm, up)
+        # The wide end from the whole cloud's silhouette: the frontal cloud lacks the rims, and its
+        # width changes too little along the tube to say (seed 7's colon_004: slope -0.008 against
+        # -0.082, and the wrong end taken).
+        frontal = estimate_object_frame(frontal_mm, up, size_points=cloud_mm)
     except InputError:  # too little frontal tissue to fit: nothing to check against
         return frame
     angle = float(np.degrees(np.arccos(min(1.0, abs(float(frame.z_axis @ frontal.z_axis))))))
