@@ -337,6 +337,14 @@ def test_predict_recording_and_streaming_agree_on_a_simulated_recording(tmp_path
         np.testing.assert_allclose(np.stack([e.force_n for e in estimates]), force, rtol=1e-3, atol=1e-3)
         assert set(live.stage_seconds) >= {"depth", "mask", "cloud", "tracking", "force"}
 
+    # A model trained on other tracks (vfdata predict --tracker klt): the geometry tracks of the run
+    # above are not reused for it, they are redone with KLT.
+    from vfdata.processing import ProcessOptions
+
+    klt = predict.predict_recording(recording, ckpt, tmp_path / "out", ProcessOptions(tracker="klt"), window=8,
+                                    video=False, progress=False, overwrite=True)
+    assert read_tracks(klt.processed).metadata.values["tracker"] == "klt"
+
 
 def test_displacement_tokens_and_the_mirror():
     points, visible = _tracks(frames=6, n=10)

@@ -31,11 +31,11 @@ from tqdm import tqdm
 from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import frame_rate, mirror_y, point_tokens, recording_side, top_bottom
-from vfdata.errors import InputError, OutputExistsError
+from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
-from vfdata.recording.derived import Tracks, read_tracks, write_force_estimate
+from vfdata.recording.derived import DerivedRecording, Tracks, read_tracks, write_force_estimate
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.regressor import ForceRegressor, read_checkpoint
 from vfmodels.reports.figures import plot_force_series
@@ -136,6 +136,15 @@ def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
     return paths
 
 
+def _tracked_by(processed: Path) -> str | None:
+    """The tracker named in a derived MCAP's metadata (None if unreadable: it is then redone)."""
+    try:
+        with DerivedRecording.open(processed) as derived:
+            return derived.meta.values.get("tracker")
+    except VisionForceError:
+        return None
+
+
 def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | None = None,
                       options: ProcessOptions | None = None, window: int | None = CLIP_FRAMES, video: bool = True,
                       progress: bool = True, overwrite: bool = False, reuse_processed: bool = True,
@@ -155,7 +164,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
             raise OutputExistsError(paths[key])
     options = options or ProcessOptions()
     options.progress = progress
-    if not (reuse_processed and paths["processed"].is_file()):
+    if not (reuse_processed and paths["processed"].is_file() and _tracked_by(paths["processed"]) == options.tracker):
         process_recording(src, paths["processed"], options, overwrite=True)
     tracks = read_tracks(paths["processed"])
 

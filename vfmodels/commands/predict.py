@@ -32,6 +32,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
     p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
     p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
+    p.add_argument("--tracker", default="geometry",
+                   help="point tracker: the one whose tracks the model was trained on (default geometry, as "
+                        "visionforce and proposed; klt for a model trained on KLT tracks, e.g. visionforce@klt)")
     p.add_argument("--window", type=int, default=16,
                    help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
     p.add_argument("--max-frames", type=int, help="only the first N frames")
@@ -68,14 +71,14 @@ def run(args: argparse.Namespace) -> int:
     args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
     args.device = resolve_device(args.device)
-    args.tracker_options = tracker_device_options("geometry", args.device)
+    args.tracker_options = tracker_device_options(args.tracker, args.device)
     if args.stream:
         return _stream(args, window)
     from vfdata.processing import ProcessOptions
     from vfmodels.predict import predict_recording
 
     options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames,
-                             tracker_options=args.tracker_options)
+                             tracker=args.tracker, tracker_options=args.tracker_options)
     result = predict_recording(args.recording, args.ckpt, args.out, options, window=window, video=not args.no_video,
                                progress=not args.quiet, overwrite=args.overwrite, device=args.device)
     print(f"{result.frames} frames; object frame X axis "
@@ -106,7 +109,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     with Recording.open(args.recording) as rec:
         estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm,
                                             recording_prompt(rec, args.recording, args.prompt),
-                                            EngineOptions(depth=args.depth, segment=args.segment,
+                                            EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
                                                           tracker_options=args.tracker_options), up=camera_up(rec),
                                             window=window, pipelined=args.pipelined, device=args.device)
         n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
