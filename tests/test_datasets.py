@@ -54,7 +54,8 @@ def clips(entries, cache_dir=None, **spec) -> ForceClipDataset:
     return ForceClipDataset(entries, ClipSpec(**spec), cache_dir, progress=False)
 
 
-def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True, hidden: tuple = ()) -> None:
+def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True, hidden: tuple = (),
+                    tracker: str | None = None) -> None:
     """<rid>.mcap with a 1 kHz force ramp fx = t (s), fy = 2, fz = -t; <rid>.processed.mcap with tracks."""
     t_force = np.arange(times[0] - 5 * PERIOD, times[-1] + 5 * PERIOD, 1_000_000, dtype=np.int64)
     with McapWriter(root / f"{rid}.mcap", separate_topics=(layout.WRENCH,)) as w:
@@ -71,7 +72,8 @@ def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True
                         visible[point] = False
                 w.write(layout.TRACKING_POINTS, tracks_cloud(pts[i], visible, int(t)))
         frame = {"rotation": ROTATION.tolist(), "origin": ORIGIN.tolist()}
-        w.add_metadata(layout.DERIVED_METADATA, {"object_frame": json.dumps(frame)})
+        names = {"tracker": tracker} if tracker else {}
+        w.add_metadata(layout.DERIVED_METADATA, {"object_frame": json.dumps(frame), **names})
 
 
 def write_manifest(root: Path, recordings: list[dict]) -> Path:
@@ -435,3 +437,19 @@ def test_the_one_line_ways_in_and_denormalise(dataset_root):
                                    batch["force"], equal_nan=True)
         torch.testing.assert_close(vfdata.normalise_input(batch["tokens"], stats),
                                    regressor.normalise_input(batch["tokens"]))
+
+
+def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path):
+    """The data module's state (Lightning saves it in every checkpoint) names the tracker of the training
+    recordings' derived files, so prediction can track the same way; nothing when they do not say."""
+    write_recording(tmp_path, "a", frame_times(40), tracker="klt")
+    write_recording(tmp_path, "b", frame_times(23), tracker="geometry")
+    write_recording(tmp_path, "c", frame_times(18))
+    manifest = write_manifest(tmp_path, [
+        {"id": "a", "orientation_deg": 0, "split": "train"},
+        {"id": "b", "orientation_deg": 0, "split": "val"},
+        {"id": "c", "orientation_deg": 45, "split": "test"},
+    ])
+    assert ForceDataModule.from_manifest(manifest, progress=False).state_dict() == {"tracker": "klt"}
+    unnamed = write_manifest(tmp_path, [{"id": "c", "orientation_deg": 0, "split": "train"}])
+    assert ForceDataModule.from_manifest(unnamed, progress=False).state_dict() == {}

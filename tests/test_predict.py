@@ -360,3 +360,16 @@ def test_displacement_tokens_and_the_mirror():
     np.testing.assert_allclose(flipped[..., 0::3], tokens[..., 0::3])
     with pytest.raises(VisionForceError, match="mirror_augment"):
         ClipSpec(frame="camera", mirror_augment=True)
+
+
+def test_the_trained_tracker_is_read_from_the_checkpoint_as_a_known_name(tmp_path):
+    path = _save_checkpoint(_regressor(), tmp_path / "k.ckpt")
+    assert predict.trained_tracker(path) is None  # an older checkpoint does not say: the caller's default
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["ForceDataModule"] = {"tracker": "klt"}
+    torch.save(checkpoint, path)
+    assert predict.trained_tracker(path) == "klt"
+    checkpoint["ForceDataModule"] = {"tracker": "rm -rf /"}
+    torch.save(checkpoint, path)
+    with pytest.raises(InputError, match="unknown tracker"):
+        predict.trained_tracker(path)

@@ -62,6 +62,18 @@ def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegres
     return regressor.to(device), spec
 
 
+def trained_tracker(ckpt: str | Path) -> str | None:
+    """The tracker whose tracks a checkpoint's model was trained on (saved by `ForceDataModule`), or
+    None when the checkpoint does not say (older checkpoints, other inputs)."""
+    from vfdata.tracking.registry import TRACKERS
+
+    state = read_checkpoint(ckpt).get("ForceDataModule") or {}
+    tracker = state.get("tracker") if isinstance(state, dict) else None
+    if tracker is not None and tracker not in TRACKERS:
+        raise InputError(ckpt, f"the checkpoint names an unknown tracker {tracker!r} (known: {', '.join(TRACKERS)})")
+    return tracker
+
+
 def model_device(regressor: ForceRegressor) -> torch.device:
     return next(regressor.parameters()).device
 
@@ -208,4 +220,4 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
 
 
 __all__ = ["CLIP_FRAMES", "PredictResult", "forces_from_tracks", "frame_embeddings",
-           "load_force_model", "predict_recording", "windowed_forces", "write_overlay_video"]
+           "load_force_model", "predict_recording", "trained_tracker", "windowed_forces", "write_overlay_video"]

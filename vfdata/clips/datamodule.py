@@ -15,6 +15,7 @@ from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
+from vfdata.recording.derived import DerivedRecording
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -110,6 +111,27 @@ class ForceDataModule(L.LightningDataModule):
             raise InputError(self.manifest.path, f"random_split {self.random_split} leaves no '{split}' clips")
         data.index = data.index[part]
         return data
+
+    def training_tracker(self) -> str | None:
+        """The tracker whose tracks the training recordings hold (their derived files' metadata), or
+        None when the clips are not tracks of processed recordings."""
+        if self.spec.input != "tracks" or self.spec.source != "processed":
+            return None
+        entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
+        for entry in entries:
+            if entry.processed.is_file():
+                with DerivedRecording.open(entry.processed) as derived:
+                    return derived.meta.values.get("tracker")
+        return None
+
+    def state_dict(self) -> dict[str, Any]:
+        # Lightning stores this in every checkpoint: prediction tracks a recording the way the
+        # training recordings were tracked (vfmodels.predict.trained_tracker).
+        tracker = self.training_tracker()
+        return {"tracker": tracker} if tracker else {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        pass  # nothing to restore: the tracker is read by prediction, not by training
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit", "validate"):

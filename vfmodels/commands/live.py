@@ -11,7 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
-from vfdata.device import resolve_device, tracker_device_options
+from vfdata.device import GPU_TRACKERS, resolve_device, tracker_device_options
 from vfdata.errors import InputError
 
 
@@ -104,16 +104,19 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
 
     import_foxglove()  # the missing extra is said before anything else is opened
     device = resolve_device(args.device)
-    tracker_options = tracker_device_options("geometry", device)
+    from vfmodels.predict import trained_tracker
+
+    ckpt = checkpoint_file(args.ckpt)
+    tracker = trained_tracker(ckpt) or "geometry"  # track as the training recordings were tracked
+    tracker_options = tracker_device_options(tracker, device) if tracker in GPU_TRACKERS else {}
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
-    ckpt = checkpoint_file(args.ckpt)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt, up = open_source(args)
     server = None
     try:
         estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt,
-                                            EngineOptions(depth=args.depth, segment=args.segment,
+                                            EngineOptions(depth=args.depth, segment=args.segment, tracker=tracker,
                                                           depth_roi_margin_px=roi, tracker_options=tracker_options),
                                             up=up, device=device,
                                             window=None if args.window == 0 else args.window,

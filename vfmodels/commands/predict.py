@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
+from vfdata.device import DEVICE_HELP, GPU_TRACKERS, resolve_device, tracker_device_options
 from vfdata.errors import OutputExistsError
 
 
@@ -32,9 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
     p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
     p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
-    p.add_argument("--tracker", default="geometry",
-                   help="point tracker: the one whose tracks the model was trained on (default geometry, as "
-                        "visionforce and proposed; klt for a model trained on KLT tracks, e.g. visionforce@klt)")
+    p.add_argument("--tracker", help="point tracker (default: the one whose tracks the model was trained on, "
+                                     "saved in the checkpoint; geometry for a checkpoint that does not say)")
     p.add_argument("--window", type=int, default=16,
                    help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
     p.add_argument("--max-frames", type=int, help="only the first N frames")
@@ -71,7 +70,11 @@ def run(args: argparse.Namespace) -> int:
     args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
     args.device = resolve_device(args.device)
-    args.tracker_options = tracker_device_options(args.tracker, args.device)
+    from vfmodels.predict import trained_tracker
+
+    args.tracker = args.tracker or trained_tracker(args.ckpt) or "geometry"
+    # the model goes to --device; a tracker without a GPU path (KLT) stays on the CPU
+    args.tracker_options = tracker_device_options(args.tracker, args.device) if args.tracker in GPU_TRACKERS else {}
     if args.stream:
         return _stream(args, window)
     from vfdata.processing import ProcessOptions

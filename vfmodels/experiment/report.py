@@ -122,8 +122,8 @@ def claims(aggregated: dict[str, dict]) -> dict[str, dict]:
     halves("visionforce_object_frame_halves_rmse", "visionforce", "visionforce_camera_frame",
            "visionforce: the object frame lowers the average RMSE by >= 50% vs the camera frame")
     compare("visionforce_beats_proposed", "visionforce", "proposed", "visionforce beats the paper's proposed model")
-    compare("visionforce_geometry_beats_klt", "visionforce", "visionforce@klt",
-            "visionforce: geometry tracking beats KLT")
+    compare("visionforce_geometry_beats_klt", "visionforce@geometry", "visionforce",
+            "visionforce: geometry tracking beats KLT (visionforce reads KLT tracks)")
     compare("visionforce_beats_displacement_only", "visionforce", "visionforce_displacement_only",
             "visionforce: displacement + velocity beats displacement only")
     compare("visionforce_beats_velocity_only", "visionforce", "visionforce_velocity_only",
