@@ -51,3 +51,9 @@ def tracker_device_options(tracker: str, device: str) -> dict:
         raise VisionForceError(f"--device {device}: the '{tracker}' tracker runs on the CPU only (on a GPU: "
                                f"{', '.join(GPU_TRACKERS)})")
     return {"device": device}
+
+
+def shared_device_options(tracker: str, device: str) -> dict:
+    """The tracker options for a job whose model runs on `device` (resolved): the geometry trackers go
+    there too, a tracker without a GPU path (KLT) stays on the CPU."""
+    return tracker_device_options(tracker, device) if tracker in GPU_TRACKERS else {}

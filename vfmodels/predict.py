@@ -31,11 +31,12 @@ from tqdm import tqdm
 from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import frame_rate, mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
-from vfdata.recording.derived import DerivedRecording, Tracks, read_tracks, write_force_estimate
+from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.regressor import ForceRegressor, read_checkpoint
 from vfmodels.reports.figures import plot_force_series
@@ -72,6 +73,14 @@ def trained_tracker(ckpt: str | Path) -> str | None:
     if tracker is not None and tracker not in TRACKERS:
         raise InputError(ckpt, f"the checkpoint names an unknown tracker {tracker!r} (known: {', '.join(TRACKERS)})")
     return tracker
+
+
+def prediction_tracker(ckpt: str | Path, device: str, tracker: str | None = None) -> tuple[str, dict]:
+    """The tracker to process with (`tracker`, else the one the checkpoint's model was trained on, else
+    geometry) and its options on a resolved `device`: the model goes to `device`, and a tracker
+    without a GPU path (KLT) stays on the CPU."""
+    tracker = tracker or trained_tracker(ckpt) or "geometry"
+    return tracker, shared_device_options(tracker, device)
 
 
 def model_device(regressor: ForceRegressor) -> torch.device:
@@ -151,8 +160,7 @@ def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
 def _tracked_by(processed: Path) -> str | None:
     """The tracker named in a derived MCAP's metadata (None if unreadable: it is then redone)."""
     try:
-        with DerivedRecording.open(processed) as derived:
-            return derived.meta.values.get("tracker")
+        return read_tracker_name(processed)
     except VisionForceError:
         return None
 
@@ -220,4 +228,5 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
 
 
 __all__ = ["CLIP_FRAMES", "PredictResult", "forces_from_tracks", "frame_embeddings",
-           "load_force_model", "predict_recording", "trained_tracker", "windowed_forces", "write_overlay_video"]
+           "load_force_model", "predict_recording", "prediction_tracker", "trained_tracker", "windowed_forces",
+           "write_overlay_video"]

@@ -3,6 +3,7 @@ network: the model gets the batches and the normalisation statistics of the trai
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any, Literal
 
@@ -15,7 +16,7 @@ from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
-from vfdata.recording.derived import DerivedRecording
+from vfdata.recording.derived import read_tracker_name
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -112,22 +113,19 @@ class ForceDataModule(L.LightningDataModule):
         data.index = data.index[part]
         return data
 
+    @functools.cached_property
     def training_tracker(self) -> str | None:
         """The tracker whose tracks the training recordings hold (their derived files' metadata), or
-        None when the clips are not tracks of processed recordings."""
+        None when the clips are not tracks of processed recordings. Read once: every checkpoint saves it."""
         if self.spec.input != "tracks" or self.spec.source != "processed":
             return None
         entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
-        for entry in entries:
-            if entry.processed.is_file():
-                with DerivedRecording.open(entry.processed) as derived:
-                    return derived.meta.values.get("tracker")
-        return None
+        return next((read_tracker_name(e.processed) for e in entries if e.processed.is_file()), None)
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
         # training recordings were tracked (vfmodels.predict.trained_tracker).
-        tracker = self.training_tracker()
+        tracker = self.training_tracker
         return {"tracker": tracker} if tracker else {}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:

@@ -192,11 +192,11 @@ def cross_checked_frame(cloud_mm: np.ndarray, frontal_mm: np.ndarray, up: np.nda
     part (M, 3, mm: the same tissue without the pixels seen at a grazing angle, `grazing_pixels`).
     Where the two axes differ by more than `max_disagreement_deg`, the frontal frame is taken: an
     instrument lying over the tissue bleeds its depth into a band of tissue pixels, and that band can
-    turn the whole fit (the simulator's glove_011: Z 141 deg off, 0.9 deg from the frontal cloud; two
-    colon recordings of another seed: 34 and 24 deg off, 8 and 7). Otherwise the full cloud's frame
-    stays: the silhouette rims the frontal cloud lacks are what pins a circle to a partial arc (its
-    axes are a little worse on clean views: median 3.9 vs 3.5 deg over 37 simulated recordings, and
-    the two never differ by more than 12 deg there)."""
+    turn the whole fit (the simulator's glove_011: Z 141 deg off, 2.0 deg with the check; colon seed 7's
+    colon_003 and colon_004: 23.5 and 146 deg off, 7.0 and 8.3 deg with it). Otherwise the full cloud's
+    frame stays: the silhouette rims the frontal cloud lacks are what pins a circle to a partial arc (its
+    axes are a little worse on clean views: median 3.9 vs 3.5 deg over 37 simulated recordings, and the
+    two never differ by more than 10.5 deg there)."""
     frame = estimate_object_frame(cloud_mm, up)
     try:
         # The wide end from the whole cloud's silhouette: the frontal cloud lacks the rims, and its

@@ -357,6 +357,12 @@ class DerivedRecording:
                       np.asarray(visible, dtype=bool).reshape(n, -1), self.object_frame, self.meta)
 
 
+def read_tracker_name(path: str | Path) -> str | None:
+    """The tracker named in a derived MCAP's metadata (None when it does not say)."""
+    with DerivedRecording.open(path) as derived:
+        return derived.meta.get("tracker")
+
+
 def read_tracks(path: str | Path) -> Tracks:
     """The tracks and object frame of a derived MCAP."""
     with DerivedRecording.open(path) as derived:

@@ -11,7 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
-from vfdata.device import GPU_TRACKERS, resolve_device, tracker_device_options
+from vfdata.device import resolve_device
 from vfdata.errors import InputError
 
 
@@ -104,11 +104,10 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
 
     import_foxglove()  # the missing extra is said before anything else is opened
     device = resolve_device(args.device)
-    from vfmodels.predict import trained_tracker
+    from vfmodels.predict import prediction_tracker
 
     ckpt = checkpoint_file(args.ckpt)
-    tracker = trained_tracker(ckpt) or "geometry"  # track as the training recordings were tracked
-    tracker_options = tracker_device_options(tracker, device) if tracker in GPU_TRACKERS else {}
+    tracker, tracker_options = prediction_tracker(ckpt, device)  # as the training recordings were tracked
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vfdata.device import DEVICE_HELP, GPU_TRACKERS, resolve_device, tracker_device_options
+from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.errors import OutputExistsError
 
 
@@ -70,11 +70,9 @@ def run(args: argparse.Namespace) -> int:
     args.ckpt = checkpoint_file(args.ckpt)
     window = None if args.window == 0 else args.window
     args.device = resolve_device(args.device)
-    from vfmodels.predict import trained_tracker
+    from vfmodels.predict import prediction_tracker
 
-    args.tracker = args.tracker or trained_tracker(args.ckpt) or "geometry"
-    # the model goes to --device; a tracker without a GPU path (KLT) stays on the CPU
-    args.tracker_options = tracker_device_options(args.tracker, args.device) if args.tracker in GPU_TRACKERS else {}
+    args.tracker, args.tracker_options = prediction_tracker(args.ckpt, args.device, args.tracker)
     if args.stream:
         return _stream(args, window)
     from vfdata.processing import ProcessOptions

@@ -15,7 +15,7 @@ from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
-from vfdata.device import GPU_TRACKERS, tracker_device_options
+from vfdata.device import shared_device_options
 from vfdata.errors import InputError
 from vfdata.executor import run_jobs
 from vfdata.manifest import ManifestEntry
@@ -65,7 +65,7 @@ def process(job: ProcessJob) -> str:
     import torch  # here, not at the top: the experiment command's parser reads this module without torch
 
     torch.set_num_threads(1)
-    tracker_options = tracker_device_options(job.tracker, job.device) if job.tracker in GPU_TRACKERS else {}
+    tracker_options = shared_device_options(job.tracker, job.device)
     process_recording(job.src, job.out, ProcessOptions(depth=job.depth, segment=job.segment, tracker=job.tracker,
                                                        prompt=job.prompt, max_frames=job.max_frames,
                                                        tracker_options=tracker_options, progress=False))
