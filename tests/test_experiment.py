@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.rgbd_fixtures import make_rgbd
 from vfdata.clips.tokens import latest_clip_frames
+from vfdata.conversion.options import ConvertOptions
+from vfdata.conversion.raw_rgbd import convert_rgbd_folder
 from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import load_manifest
 from vfmodels.experiment import report, runner
-from vfmodels.experiment.prepare import derived_path, prepare
-from vfmodels.experiment.variants import PAPER_VARIANTS
+from vfmodels.experiment.prepare import any_depth_only, derived_path, prepare
+from vfmodels.experiment.variants import PAPER_VARIANTS, VISIONFORCE_TRACKER, for_depth_only
 from vfmodels.reports import tables
 
 
@@ -72,6 +75,22 @@ def test_missing_recording_names_the_fix(tmp_path):
     entries = list(load_manifest(write_manifest(tmp_path)).entries)
     with pytest.raises(InputError, match="vfdata synth"):
         prepare(entries, ["geometry"], progress=False)
+
+
+def test_rgbd_recordings_run_the_project_pipeline_on_depth_only_tracks(tmp_path):
+    # On RGB-D the image trackers would follow the depth drawn as grey: VisionForce's own variants read
+    # the geometry tracks there, and a variant that names its tracker keeps it.
+    chosen = runner.ExperimentOptions(variants=["visionforce", "ridge", "visionforce_camera_frame", "klt",
+                                                "visionforce@geometry", "proposed"]).chosen()
+    assert [v.tracker for v in chosen][:3] == [VISIONFORCE_TRACKER] * 3 == ["klt"] * 3
+    assert [v.tracker for v in for_depth_only(chosen)] == ["geometry", "geometry", "geometry", "klt", "geometry",
+                                                          "geometry"]
+    src = make_rgbd(tmp_path / "rgbd", n=3)
+    (tmp_path / "data").mkdir()
+    convert_rgbd_folder(src, tmp_path / "data" / "a.mcap", options=ConvertOptions(progress=False, workers=1))
+    manifest = write_manifest(tmp_path, [{"id": "a", "orientation_deg": 0, "split": "train"}])
+    entries = list(load_manifest(manifest).entries)
+    assert any_depth_only(entries)
 
 
 def test_unknown_variant_is_an_error():

@@ -20,6 +20,7 @@ from vfdata.errors import InputError
 from vfdata.executor import run_jobs
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
+from vfdata.recording import Recording
 from vfmodels.experiment.variants import PROCESSINGS, derived_name
 
 
@@ -60,6 +61,23 @@ def convert(entry: ManifestEntry, progress: bool = False) -> None:
         convert_raw_folder(entry.raw, entry.mcap, options=options, meta=entry.recording_meta)
 
 
+def convert_all(entries: list[ManifestEntry], progress: bool = True) -> float:
+    """`convert` every entry; wall seconds."""
+    started = time.perf_counter()
+    for entry in tqdm(entries, desc="convert", unit="recording", disable=not progress):
+        convert(entry)
+    return time.perf_counter() - started
+
+
+def any_depth_only(entries: list[ManifestEntry]) -> bool:
+    """Whether a converted recording is RGB-D: its image trackers would see only the depth drawn as grey."""
+    for mcap in {entry.mcap for entry in entries}:
+        with Recording(mcap) as rec:
+            if rec.is_rgbd:
+                return True
+    return False
+
+
 def process(job: ProcessJob) -> str:
     """Run one job; one torch/BLAS thread, since recordings run side by side in processes."""
     import torch  # here, not at the top: the experiment command's parser reads this module without torch
@@ -79,11 +97,7 @@ def prepare(entries: list[ManifestEntry], trackers: list[str], depth: str = "sgb
     """Convert what is missing, then process every recording for each processing (`PROCESSINGS` key;
     outputs that exist are kept; `prompt` for entries without their own), one job per recording and
     processing on `executor` (`vfdata.executor`). Returns wall seconds per step."""
-    seconds = {}
-    started = time.perf_counter()
-    for entry in tqdm(entries, desc="convert", unit="recording", disable=not progress):
-        convert(entry)
-    seconds["convert"] = time.perf_counter() - started
+    seconds = {"convert": convert_all(entries, progress)}
     jobs = []
     for name in trackers:
         recipe = PROCESSINGS[name]

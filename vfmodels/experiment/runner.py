@@ -33,11 +33,11 @@ from vfdata.device import lightning_accelerator, resolve_device
 from vfdata.errors import InputError, VisionForceError
 from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
-from vfmodels.experiment.prepare import derived_path, prepare
+from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
 from vfmodels.experiment.runs import run_folder, write_run
-from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant
+from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant, for_depth_only
 from vfmodels.prediction_writer import PredictionCollector
 from vfmodels.regressor import ForceRegressor
 from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
@@ -174,7 +174,10 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     options = options or ExperimentOptions()
     out = Path(out)
     manifest = load_manifest(manifest_path)
+    convert_seconds = convert_all(list(manifest.entries), options.progress)
     variants = options.chosen()
+    if any_depth_only(list(manifest.entries)):
+        variants = for_depth_only(variants)
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
@@ -185,6 +188,7 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     seconds = prepare(list(manifest.entries), trackers, options.depth, options.segment, options.prompt,
                       options.max_frames, options.workers, options.progress, options.executor, options.ray_address,
                       device)
+    seconds["convert"] += convert_seconds
     manifests = {t: tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
     (out / "experiment.json").write_text(json.dumps({
         "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,

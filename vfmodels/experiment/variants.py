@@ -3,7 +3,7 @@ files it reads, and the table it belongs to. Plain data (no torch), so the comma
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,12 @@ class Variant:
 # tube's mirror symmetry (docs/results.md), its camera-frame twin, and the fast ridge model on its tokens.
 # They read KLT tracks: with tokens that carry each point's place along Z, tracks that do not slide along
 # the surface halve the error on glove (1.21 -> 0.56 N, seed 0; docs/results.md, "VisionForce").
+# On an RGB-D recording the image trackers see the depth drawn as grey (the colour crop is not
+# registered to it): a press changes the very brightness KLT follows, and its tracks leave the tissue
+# (Gao et al. 2018: test R² -0.83 on KLT tracks, 0.32 on geometry tracks; docs/results.md). There the
+# project's pipeline reads the geometry tracker's, which needs only the depth.
 VISIONFORCE_TRACKER = "klt"
+VISIONFORCE_DEPTH_ONLY_TRACKER = "geometry"
 VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Variant("visionforce", "VisionForce (deformation tokens, tube symmetries)", "visionforce.yaml",
             tracker=VISIONFORCE_TRACKER, table="I+II"),
@@ -140,3 +145,11 @@ TRACKER_SUFFIX = {name: p.suffix for name, p in PROCESSINGS.items()}
 
 def derived_name(recording_id: str, tracker: str) -> str:
     return recording_id + TRACKER_SUFFIX.get(tracker, f".{tracker}.mcap")
+
+
+def for_depth_only(variants: list[Variant]) -> list[Variant]:
+    """The variants as they run on RGB-D recordings: the project's pipeline (and its camera-frame twin,
+    ablations and ridge) on the depth-only tracker instead of KLT; a variant that names its tracker (the
+    paper's `klt` ablation, `visionforce@geometry`) keeps it."""
+    own = {*VISIONFORCE_VARIANTS, *VISIONFORCE_ABLATIONS}
+    return [replace(v, tracker=VISIONFORCE_DEPTH_ONLY_TRACKER) if v.name in own else v for v in variants]
