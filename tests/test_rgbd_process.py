@@ -101,6 +101,18 @@ def test_process_rgbd_refuses_stereo_depth_and_the_tube_frame(tmp_path):
     assert not (tmp_path / "rec.processed.mcap").exists()
 
 
+def test_an_image_tracker_on_rgbd_is_warned_about(tmp_path, caplog):
+    # the image an RGB-D recording's trackers see is its depth drawn as grey: KLT would follow the press
+    src = make_rgbd(tmp_path / "rec", n=3, holes=False)
+    rec = convert_rgbd_folder(src, tmp_path / "rec.mcap", options=ConvertOptions(progress=False, workers=1))
+    with caplog.at_level("WARNING"):
+        process_recording(rec, options=ProcessOptions(progress=False, tracker="geometry", num_points=32))
+    assert "depth drawn as grey" not in caplog.text
+    with caplog.at_level("WARNING"):
+        process_recording(rec, tmp_path / "klt.mcap", ProcessOptions(progress=False, tracker="klt", num_points=32))
+    assert "tracker 'klt' follows the image" in caplog.text and "rec.mcap" in caplog.text
+
+
 def test_a_glitched_depth_frame_gets_no_mask_and_is_listed():
     segmenter = PlaneSegmenter()
     blank = np.zeros((DEPTH_SIZE, DEPTH_SIZE, 3), np.uint8)

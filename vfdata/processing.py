@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -27,7 +28,10 @@ from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedWriter
 from vfdata.threads import DEFAULT_THREADS, thread_limit
+from vfdata.tracking.registry import IMAGE_TRACKERS
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
+
+log = logging.getLogger(__name__)
 
 TRACKERS = (*TRACKER_NAMES, "none")
 RGBD_ANCHOR = 1.0  # lambda_anchor of the geometry trackers on RGB-D recordings (rgbd_options)
@@ -135,6 +139,10 @@ def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
     if options.object_frame == "tissue":
         raise InputError(src, "the tube's object frame does not apply to an RGB-D recording of a flat organ: "
                               "--object-frame board (default) or camera")
+    if options.tracker in IMAGE_TRACKERS:
+        log.warning(f"warning: {src}: tracker '{options.tracker}' follows the image, and an RGB-D recording's image "
+                    "here is its depth drawn as grey, whose brightness a press changes: --tracker geometry "
+                    "needs only the depth (docs/tracking.md)")
     tracker_options = dict(options.tracker_options)
     if options.tracker in ("geometry", "geometry+"):
         tracker_options.setdefault("lambda_anchor", RGBD_ANCHOR)

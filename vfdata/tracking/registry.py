@@ -285,6 +285,7 @@ _MAKERS: dict[str, Callable[..., _Adapter]] = {
     "static": _Static,
 }
 TRACKERS: tuple[str, ...] = tuple(_MAKERS)
+IMAGE_TRACKERS: tuple[str, ...] = ("geometry+", "klt", "cotracker")  # they read the images, not only the depth
 
 
 def make_tracker(name: str, first_frame: FrameInputs, num_points: int = 256, seed: int = 0,
