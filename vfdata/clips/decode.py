@@ -64,8 +64,11 @@ def force_at(entry: ManifestEntry, times_ns: np.ndarray) -> np.ndarray:
         return force.astype(np.float32)
 
 
-def _tokens(spec: ClipSpec, times_ns: np.ndarray, points_object_mm: np.ndarray, visible: np.ndarray,
-            force_n: np.ndarray, rotation: np.ndarray, origin_mm: np.ndarray) -> Decoded:
+def decoded_tracks(spec: ClipSpec, times_ns: np.ndarray, points_object_mm: np.ndarray, visible: np.ndarray,
+                   force_n: np.ndarray, rotation: np.ndarray, origin_mm: np.ndarray) -> Decoded:
+    """Tracked points (F, N, 3) mm in the object frame (`rotation`, `origin_mm`: object -> camera) with
+    their visibility (F, N) and the force (F, 3) N -> the spec's tokens, mirrored to the canonical side
+    when the spec asks."""
     side = recording_side(spec, points_object_mm[0], visible[0]) if len(points_object_mm) else 1.0
     keep = top_bottom(points_object_mm[0]) if spec.subset == "top_bottom_20" and len(points_object_mm) else None
     tokens, valid = point_tokens(spec, mirror_y(points_object_mm, side), visible, times_ns, (rotation, origin_mm), keep)
@@ -92,7 +95,7 @@ def _decode_processed(entry: ManifestEntry, spec: ClipSpec) -> Decoded:
         frame = derived.object_frame
         if spec.input == "tracks":
             tracks = derived.tracks()
-            return _tokens(spec, tracks.times_ns, tracks.points_object_mm, tracks.visible,
+            return decoded_tracks(spec, tracks.times_ns, tracks.points_object_mm, tracks.visible,
                            force_at(entry, tracks.times_ns), frame.rotation, frame.origin)
         if spec.input == "cloud":
             stamps, clouds = zip(*derived.clouds_mm(), strict=True)
@@ -153,7 +156,7 @@ def _decode_ground_truth(entry: ManifestEntry, spec: ClipSpec) -> Decoded:
     rng = np.random.default_rng(spec.seed)
     keep = np.sort(rng.choice(pool, size=min(spec.num_points, len(pool)), replace=False))
     valid = np.ones((len(points_obj), len(keep)), bool) if surface else visible[:, keep]
-    return _tokens(spec, times_ns, points_obj[:, keep], valid, force, rotation, origin)
+    return decoded_tracks(spec, times_ns, points_obj[:, keep], valid, force, rotation, origin)
 
 
 def _source_files(entry: ManifestEntry, spec: ClipSpec) -> list[Path]:
