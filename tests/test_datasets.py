@@ -16,7 +16,7 @@ from torch.utils.data import DataLoader
 from vfdata.clips.datamodule import ForceDataModule
 from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import clip_starts, segments, velocities
+from vfdata.clips.tokens import clip_starts, point_features, segments, tilt_about, tilt_tokens, velocities
 from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import load_manifest
 from vfdata.recording import McapWriter, layout
@@ -340,6 +340,49 @@ def test_mirror_augmentation_flips_training_clips_only(dataset_root):
     dm = ForceDataModule(str(manifest), spec=spec, progress=False)
     dm.setup("fit")
     assert dm.datasets["train"].augment and not dm.datasets["val"].augment
+
+
+def test_tilted_tokens_are_those_of_the_points_in_the_tilted_frame():
+    # the same points expressed in a frame tilted about the tissue's free end: the tokens recomputed
+    # from them and the tokens tilted after the fact agree (the place along Z to within the shift of
+    # the 98th-percentile tip, which is recomputed on the tilted points)
+    rng = np.random.default_rng(0)
+    th, z = rng.uniform(0, 2 * np.pi, 60), rng.uniform(0, 60, 60)
+    start = np.stack([10 * np.cos(th), 10 * np.sin(th), z], axis=-1)
+    points = np.stack([start + k * 0.3 * rng.normal(size=start.shape) for k in range(6)])
+    valid, runs = np.ones(points.shape[:2], bool), [(0, 6)]
+    rotation = tilt_about(0.7, np.radians(6.0))
+    tip = np.array([0.0, 0.0, np.percentile(z, 98)])
+    tokens, _ = point_features(points, valid, runs, 30.0, "polar_z_disp_vel")
+    expected, _ = point_features((points - tip) @ rotation + tip, valid, runs, 30.0, "polar_z_disp_vel")
+    tilted = tilt_tokens(tokens, "polar_z_disp_vel", rotation)
+    np.testing.assert_allclose(np.delete(tilted, 5, axis=-1), np.delete(expected, 5, axis=-1), atol=1e-4)
+    np.testing.assert_allclose(tilted[..., 5], expected[..., 5], atol=1.0)
+    assert np.abs(tilted - tokens).max() > 1.0  # a 6 degree tilt moves the far points by mm
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.degrees(np.arccos(rotation[2, 2])), 6.0)
+    zero = np.zeros((2, 12), np.float32)
+    assert not tilt_tokens(zero, "polar_z_disp_vel", rotation).any()  # invalid points stay zero
+    with pytest.raises(VisionForceError, match="cannot be tilted"):
+        tilt_tokens(tokens, "polar_disp_vel", rotation)
+    with pytest.raises(VisionForceError, match="tilt_augment_deg"):
+        ClipSpec(features="polar_disp_vel", tilt_augment_deg=5.0)
+
+
+def test_tilt_augmentation_moves_training_tokens_not_the_force(dataset_root):
+    _, manifest = dataset_root
+    entries = list(load_manifest(manifest).entries)[:1]
+    spec = ClipSpec(features="polar_z_disp_vel", tilt_augment_deg=10.0)
+    plain = ForceClipDataset(entries, spec, progress=False)
+    torch.manual_seed(0)
+    augmented = ForceClipDataset(entries, spec, progress=False, augment=True)
+    item, reference = augmented[1], plain[1]
+    torch.testing.assert_close(item["force"], reference["force"])
+    assert not torch.allclose(item["tokens"], reference["tokens"])
+    # displacements keep their length under a rotation
+    torch.testing.assert_close(item["tokens"][..., 6:9].norm(dim=-1), reference["tokens"][..., 6:9].norm(dim=-1),
+                               atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(ForceClipDataset(entries, spec, progress=False)[1]["tokens"], reference["tokens"])
 
 
 def test_rotation_augmentation_turns_tokens_and_force_together(dataset_root):

@@ -27,7 +27,15 @@ from tqdm import tqdm
 
 from vfdata.clips.decode import Decoded, decode_recording
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import clip_starts, frame_rate, segments, transform_tokens, turn_about_z
+from vfdata.clips.tokens import (
+    clip_starts,
+    frame_rate,
+    segments,
+    tilt_about,
+    tilt_tokens,
+    transform_tokens,
+    turn_about_z,
+)
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry, load_manifest
 
@@ -85,14 +93,18 @@ class ForceClipDataset(Dataset):
             item["depth"] = item["depth"].float()
         if d.valid is not None:
             item["valid"] = torch.from_numpy(np.ascontiguousarray(d.valid[window]))
-        if self.augment and (self.spec.mirror_augment or self.spec.rotate_augment):
+        if self.augment and (self.spec.mirror_augment or self.spec.rotate_augment or self.spec.tilt_augment_deg):
             self._augment(item)
         return item
 
     def _augment(self, item: dict) -> None:
-        """Mirror across the object's XZ plane (probability 1/2) and turn about its Z axis (uniform
-        angle), as the spec asks: points and force alike. torch's generator, so that each data-loader
-        worker draws its own."""
+        """Tilt the object frame (points only, the force is the sensor's), then mirror across its XZ
+        plane (probability 1/2) and turn about its Z axis (uniform angle), as the spec asks: points and
+        force alike. torch's generator, so that each data-loader worker draws its own."""
+        if self.spec.tilt_augment_deg:
+            axis_angle, fraction = (float(v) for v in torch.rand(2))
+            tilt = tilt_about(2 * np.pi * axis_angle, np.radians(self.spec.tilt_augment_deg) * fraction)
+            item["tokens"] = torch.from_numpy(tilt_tokens(item["tokens"].numpy(), self.spec.features, tilt))
         mirror = bool(self.spec.mirror_augment and torch.rand(()) < 0.5)
         angle = float(torch.rand(()) * 2 * np.pi) if self.spec.rotate_augment else 0.0
         matrix = turn_about_z(angle, mirror)

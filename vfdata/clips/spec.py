@@ -17,6 +17,9 @@ Subset = Literal["all", "top_bottom_20"]
 
 FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "disp": 3, "ref_disp_vel": 9,
                     "polar_disp_vel": 9, "polar_z_disp_vel": 12}
+# Features a tilt of the object frame can be applied to after the fact (`tokens.tilt_tokens`): 3-vectors
+# that turn with it, or polar_z's place, which with its place along Z gives the point relative to the tip.
+TILTABLE_FEATURES = ("polar_z_disp_vel", "disp_vel", "disp", "vel", "ref_disp_vel", "pos_vel", "pos")
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 
@@ -57,6 +60,11 @@ class ClipSpec:
         rotate_augment: in training, turn each clip about the object's Z axis by a uniform random angle (the
             x, y of every token vector and Fx, Fy with it): the tube is nearly round, so a view of another
             part of its circumference is nearly a valid clip; beyond the paper.
+        tilt_augment_deg: in training, express each clip's tokens in an object frame tilted by up to this
+            many degrees about a random axis across Z (about the tissue's free end), the force unchanged: the
+            estimated axis errs by a few degrees (it follows the tube's sag), and a new view can make the
+            same error cost more (docs/results.md); 0 = off. Features in `TILTABLE_FEATURES`; beyond the
+            paper.
     """
 
     input: Input = "tracks"
@@ -74,6 +82,7 @@ class ClipSpec:
     canonical_side: bool = False
     mirror_augment: bool = False
     rotate_augment: bool = False
+    tilt_augment_deg: float = 0.0
 
     def __post_init__(self) -> None:
         # jsonargparse checks the Literal types on the command line; this checks them in Python too
@@ -84,7 +93,10 @@ class ClipSpec:
                 raise VisionForceError(f"{name} '{getattr(self, name)}' is not one of {', '.join(allowed)}")
         if self.clip_frames < 1 or self.stride < 1:
             raise VisionForceError("clip_frames and stride must be positive")
-        for name in ("canonical_side", "mirror_augment", "rotate_augment"):
+        if self.tilt_augment_deg < 0 or (self.tilt_augment_deg and self.features not in TILTABLE_FEATURES):
+            raise VisionForceError(f"tilt_augment_deg {self.tilt_augment_deg}: an angle >= 0, for features "
+                                   f"{', '.join(TILTABLE_FEATURES)}")
+        for name in ("canonical_side", "mirror_augment", "rotate_augment", "tilt_augment_deg"):
             if getattr(self, name) and (self.input != "tracks" or self.frame != "object"):
                 raise VisionForceError(f"{name} moves tracked points in the object frame (input tracks, frame "
                                        "object): the camera frame does not know the object's symmetries")

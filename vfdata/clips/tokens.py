@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vfdata.clips.spec import FEATURE_CHANNELS, ClipSpec
+from vfdata.clips.spec import FEATURE_CHANNELS, TILTABLE_FEATURES, ClipSpec
 from vfdata.errors import VisionForceError
 
 GAP_FACTOR = 1.5  # a frame interval longer than this many nominal periods is a gap
@@ -173,6 +173,33 @@ def transform_tokens(tokens: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     shape = tokens.shape
     triples = tokens.reshape(*shape[:-1], shape[-1] // 3, 3)
     return (triples @ np.asarray(matrix, dtype=tokens.dtype).T).reshape(shape)
+
+
+def tilt_about(axis_angle_rad: float, tilt_rad: float) -> np.ndarray:
+    """(3, 3) rotation by `tilt_rad` about the axis across Z at `axis_angle_rad` from X: the columns are
+    a tilted frame's axes in the original one."""
+    k = np.array([np.cos(axis_angle_rad), np.sin(axis_angle_rad), 0.0])
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(tilt_rad) * cross + (1.0 - np.cos(tilt_rad)) * cross @ cross
+
+
+def tilt_tokens(tokens: np.ndarray, features: str, rotation: np.ndarray) -> np.ndarray:
+    """Tokens (..., C) as the same points give them in a frame whose axes are the columns of `rotation`
+    (a `tilt_about`), turned about the tissue's free end for `polar_z_disp_vel` (its place is counted
+    from there). All-zero tokens (invalid points) stay zero."""
+    if features not in TILTABLE_FEATURES:
+        raise VisionForceError(f"features '{features}' cannot be tilted (choose from {', '.join(TILTABLE_FEATURES)})")
+    matrix = np.asarray(rotation, dtype=np.float64).T
+    if features != "polar_z_disp_vel":
+        return transform_tokens(tokens, matrix.astype(tokens.dtype))
+    t = np.asarray(tokens, dtype=np.float64)
+    place = np.stack([t[..., 2] * t[..., 0], t[..., 2] * t[..., 1], t[..., 5]], axis=-1) @ matrix.T
+    r = np.hypot(place[..., 0], place[..., 1])
+    safe = np.where(r > 0, r, 1.0)
+    out = np.concatenate([np.stack([place[..., 0] / safe, place[..., 1] / safe, r], axis=-1),
+                          np.stack([np.zeros_like(r), np.zeros_like(r), place[..., 2]], axis=-1),
+                          t[..., 6:9] @ matrix.T, t[..., 9:12] @ matrix.T], axis=-1)
+    return np.where((t != 0).any(axis=-1, keepdims=True), out, 0.0).astype(tokens.dtype)
 
 
 def top_bottom(reference_mm: np.ndarray, fraction: float = TOP_BOTTOM_FRACTION) -> np.ndarray:
