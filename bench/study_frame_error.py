@@ -1,5 +1,5 @@
-"""How much an object frame's error costs the forces, per test view (docs/results.md, "The one view above
-1.5x validation"). On a simulated dataset's processed recordings, `vfmodels.ridge` on VisionForce's tokens
+"""How much an object frame's error costs the forces, per test view (docs/results.md, "The hardest view:
+`colon_s7` at 60°"). On a simulated dataset's processed recordings, `vfmodels.ridge` on VisionForce's tokens
 (seconds to train) is fitted and tested with each recording's tracks expressed in
 
 - `ours`: the estimated object frame (what the pipeline uses),
@@ -8,7 +8,9 @@
 - `tilted`: ours, with training copies whose frame is tilted at random (`--copies` per training recording, up
   to `--tilt-deg` about an axis across Z): an augmentation that would teach the model a frame's error.
 
-Prints the test RMSE (N) of every validation and test recording per mode.
+Prints, per mode, every validation and test recording's RMS error over the three components (N): the square
+root of the mean squared error over Fx, Fy and Fz, which weighs the largest component most; the experiment's
+tables give the avg RMSE (the mean of the three components' RMSEs), which is lower where Fz dominates.
 
     python bench/study_frame_error.py results/colon_s7/manifests/groundtruth.manifest.yaml
     python bench/study_frame_error.py results/colon_s7/manifests/klt.manifest.yaml --modes ours tilted

@@ -17,7 +17,9 @@ from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import load_manifest
 from vfmodels.experiment import report, runner
 from vfmodels.experiment.prepare import any_depth_only, derived_path, prepare
-from vfmodels.experiment.variants import PAPER_VARIANTS, VISIONFORCE_TRACKER, for_depth_only
+from vfmodels.experiment.ridge_run import config_spec
+from vfmodels.experiment.runner import CONFIGS
+from vfmodels.experiment.variants import ALL_VARIANTS, PAPER_VARIANTS, VISIONFORCE_TRACKER, for_depth_only
 from vfmodels.reports import tables
 
 
@@ -83,8 +85,17 @@ def test_rgbd_recordings_run_the_project_pipeline_on_depth_only_tracks(tmp_path)
     chosen = runner.ExperimentOptions(variants=["visionforce", "ridge", "visionforce_camera_frame", "klt",
                                                 "visionforce@geometry", "proposed"]).chosen()
     assert [v.tracker for v in chosen][:3] == [VISIONFORCE_TRACKER] * 3 == ["klt"] * 3
-    assert [v.tracker for v in for_depth_only(chosen)] == ["geometry", "geometry", "geometry", "klt", "geometry",
-                                                          "geometry"]
+    flat = for_depth_only(chosen)
+    assert [v.tracker for v in flat] == ["geometry", "geometry", "geometry", "klt", "geometry", "geometry"]
+    # A flat organ in the board frame has none of the tube's symmetries: VisionForce's configs train and
+    # test without them there, and the ridge reads the same spec; the paper's configs are left as they are.
+    for v in flat:
+        if v.config.startswith("visionforce"):
+            spec = config_spec(CONFIGS / v.config, v.overrides)
+            assert not (spec.mirror_augment or spec.rotate_augment or spec.tilt_augment_deg), v.name
+            assert "--model.symmetry_turns=0" in v.overrides
+        else:
+            assert v.overrides == ALL_VARIANTS[v.name].overrides
     src = make_rgbd(tmp_path / "rgbd", n=3)
     (tmp_path / "data").mkdir()
     convert_rgbd_folder(src, tmp_path / "data" / "a.mcap", options=ConvertOptions(progress=False, workers=1))

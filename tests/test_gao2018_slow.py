@@ -46,8 +46,7 @@ def test_the_real_recording_converts_processes_and_trains_as_published(tmp_path)
     path.write_text(yaml.safe_dump(manifest))
     out = tmp_path / "results"
     _run("-m", "vfdata", "experiment", str(path), "--out", str(out), "--variants", "visionforce", "ridge",
-         "--seeds", "1", "--epochs", "1", "--quiet", "--train-arg=--data.spec.mirror_augment=false",
-         "--train-arg=--data.spec.rotate_augment=false", "--train-arg=--model.symmetry_turns=0")
+         "--seeds", "1", "--epochs", "1", "--quiet")
     metrics = json.loads((out / "runs" / "visionforce" / "seed0" / "metrics.json").read_text())
     assert metrics["test_frames"] == 184 and metrics["pooled"]["rmse_fz"] > 0
     _run("-m", "vfmodels.experiment.real_study", str(path), "--out", str(out), "--tracker-options",
