@@ -57,3 +57,27 @@ def test_forward_backward_returns_points_where_they_started(shift_mm):
     assert result["median_mm"] < 0.5 and result["frames"] == 6
     if shift_mm:
         assert result["forward_displacement_median_mm"] > 0.5 * shift_mm
+
+
+def test_response_maps_find_where_each_force_moves_the_surface_and_whether_stretches_agree():
+    from vfmodels.experiment.force_maps import component_coupling, depth_change, map_agreement, response_maps
+
+    rng = np.random.default_rng(1)
+    frames = 400
+    force = rng.normal(size=(frames, 3))
+    force[:200, 2] = -0.8 * force[:200, 0] + 0.2 * rng.normal(size=200)  # the first stretch couples Fz to Fx
+    depths = np.full((frames, 30, 30), 700.0) + 0.05 * rng.normal(size=(frames, 30, 30))
+    depths[:, 2:10, 2:10] += force[:, :1, None]  # Fx sinks the top-left corner, in both stretches
+    depths[:200, 20:28, 2:10] -= force[:200, 2:3, None]  # Fz raises the bottom-left in the first...
+    depths[200:, 20:28, 20:28] -= force[200:, 2:3, None]  # ...and another place in the second
+    depths[5, 0, 0] = np.nan
+    change = depth_change(depths, smooth_px=1)
+    assert change[0].max() == 0.0 and change[5, 0, 0] == 0.0 and np.isfinite(change).all()
+    first, second = response_maps(change, force, np.arange(200)), response_maps(change, force, np.arange(200, 400))
+    assert first.shape == (3, 30, 30) and np.abs(first).max() <= 1.0 + 1e-9
+    assert first[0, 5, 5] > 0.95 and second[2, 24, 24] < -0.95 and abs(second[2, 24, 5]) < 0.3
+    agreement = map_agreement(first, second, np.ones((30, 30), bool))
+    # Fx moves the same corner in both (its first map also holds the coupled Fz's place); Fz moved elsewhere
+    assert agreement[0] > 0.6 and agreement[2] < 0.0
+    assert component_coupling(force, np.arange(200))["fx_fz"] < -0.9
+    assert abs(component_coupling(force, np.arange(200, 400))["fx_fz"]) < 0.2

@@ -24,6 +24,7 @@ from vfdata.processing import frame_image
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
 from vfdata.tracking.consistency import forward_backward_error
+from vfmodels.experiment.force_maps import component_coupling, depth_change, map_agreement, response_maps
 from vfmodels.experiment.frame_baselines import (
     depth_change_features,
     masked_depth_features,
@@ -91,6 +92,38 @@ def tracking_quality(derived: DerivedRecording, camera, force_n: np.ndarray, tes
                 [r["forward_backward"]["forward_displacement_median_mm"] for r in rows]))}
 
 
+def stretch_responses(depths: np.ndarray, masks: np.ndarray, force: np.ndarray,
+                      splits: dict[str, tuple[int, int]], out: Path) -> dict:
+    """Training against test stretch: the response maps (force_maps), how far they agree over the
+    organ, how the components couple in each; the figure `force_maps.png`."""
+    import matplotlib.pyplot as plt
+
+    from vfmodels.reports.figures import save_figure
+
+    seen = masks.any(axis=(1, 2))  # frames the mask rejected (glitches: empty) are left out
+    change = depth_change(depths, reference=int(np.argmax(seen)))
+    region = masks[seen].mean(axis=0) > 0.5
+    frames = {name: np.flatnonzero(seen[slice(*splits[name])]) + splits[name][0] for name in ("train", "test")}
+    maps = {name: response_maps(change, force, idx) for name, idx in frames.items()}
+    fig, axes = plt.subplots(2, 3, figsize=(11, 7.2))
+    for row, name in enumerate(("train", "test")):
+        for col, comp in enumerate(("Fx", "Fy", "Fz")):
+            ax = axes[row, col]
+            image = ax.imshow(maps[name][col], vmin=-0.8, vmax=0.8, cmap="RdBu_r")
+            ax.contour(region, levels=[0.5], colors="black", linewidths=0.6)
+            ax.set_title(f"{comp}, {name} frames {splits[name][0]}-{splits[name][1] - 1}", fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if col == 2:
+                fig.colorbar(image, ax=ax, fraction=0.046, label="correlation")
+    fig.suptitle("Where the depth moves with each force component (correlation per pixel; black: the organ)",
+                 fontsize=10)
+    save_figure(fig, out / "force_maps.png")
+    agreement = map_agreement(maps["train"], maps["test"], region)
+    return {"map_agreement": dict(zip(("fx", "fy", "fz"), agreement, strict=True)),
+            "coupling": {name: component_coupling(force, idx) for name, idx in frames.items()}}
+
+
 def _table(results: dict[str, dict[str, float]]) -> str:
     head = "| model | RMSE Fx | RMSE Fy | RMSE Fz | MAE Fx | MAE Fy | MAE Fz | MAE | R² Fx | R² Fy | R² Fz | R² mean |"
     lines = [head, "|" + " --- |" * 12]
@@ -123,6 +156,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
         plot_tracked_points(frame_image(rec, peak), {f"geometry, frame {peak}": (uv, tracks.visible[peak])},
                             out / "tracks_peak.png", mask=masks[peak],
                             title=f"Largest test press (Fz {force[peak, 2]:.0f} N), depth view")
+    responses = stretch_responses(depths, masks, force, splits, out)
     features = {"ridge_depth_change": depth_change_features(depths),
                 "ridge_masked_depth": masked_depth_features(depths, masks)}
     temporal, temporal_pred = run_baselines(features, force, temporal_indices(splits))
@@ -167,7 +201,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
     result = {"splits": {k: list(v) for k, v in splits.items()}, "temporal": temporal, "random_80_20": randomly,
               "temporal_within_training_range": in_range,
               "test_frames_within_training_range": int(inside[test].sum()),
-              "tracking": quality, "peak_frame": peak,
+              "tracking": quality, "peak_frame": peak, "stretch_responses": responses,
               "train_force_range_n": [force[slice(*splits["train"])].min(axis=0).round(1).tolist(),
                                       force[slice(*splits["train"])].max(axis=0).round(1).tolist()],
               "test_force_range_n": [force[test].min(axis=0).round(1).tolist(),
@@ -176,7 +210,14 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
     sections = [(f"Temporal split (test {splits['test']})", temporal),
                 (f"Temporal split, the {int(inside[test].sum())} test frames inside the training range", in_range),
                 ("Random 80/20 frame split", randomly)]
-    (out / "study.md").write_text("\n\n".join(f"## {title}\n\n{_table(rows)}" for title, rows in sections) + "\n")
+    agree, coupling = responses["map_agreement"], responses["coupling"]
+    stretches = ("## Training against test stretch\n\n| | Fx | Fy | Fz |\n| --- | --- | --- | --- |\n"
+                 "| response maps agree (correlation over the organ) | "
+                 + " | ".join(f"{agree[c]:.2f}" for c in ("fx", "fy", "fz")) + " |\n\n"
+                 + "\n".join(f"- {name}: components correlate Fx-Fy {c['fx_fy']:.2f}, Fx-Fz {c['fx_fz']:.2f}, "
+                             f"Fy-Fz {c['fy_fz']:.2f}" for name, c in coupling.items()))
+    (out / "study.md").write_text("\n\n".join(f"## {title}\n\n{_table(rows)}" for title, rows in sections)
+                                  + "\n\n" + stretches + "\n")
     return result
 
 
