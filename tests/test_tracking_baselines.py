@@ -4,14 +4,7 @@ import torch
 
 from vfdata import metrics
 from vfdata.errors import BackendError, InputError
-from vfdata.tracking import (
-    CoTrackerTracker,
-    GroundTruthTracker,
-    KLTTracker,
-    ProbeTracker,
-    ground_truth_tracks,
-    load_cotracker,
-)
+from vfdata.tracking import CoTrackerTracker, GroundTruthTracker, KLTTracker, ground_truth_tracks, load_cotracker
 from vfdata.tracking.synthetic import CAMERA, DeformingSheet, press_and_stretch, rigid_translation
 
 
@@ -88,57 +81,3 @@ def test_cotracker_needs_a_checkpoint(tmp_path):
     else:
         with pytest.raises(BackendError, match="not a CoTracker3"):
             load_cotracker(missing)
-
-
-def _board(h: int = 120, w: int = 160, z_mm: float = 700.0) -> np.ndarray:
-    return np.full((h, w), z_mm, dtype=np.float32)
-
-
-def _cloud(depth: np.ndarray, step: int = 2) -> np.ndarray:
-    v, u = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
-    z = depth[v, u].astype(np.float64)
-    return np.column_stack([(u.ravel() - CAMERA.cx) * z.ravel() / CAMERA.fx,
-                            (v.ravel() - CAMERA.cy) * z.ravel() / CAMERA.fy, z.ravel()])
-
-
-def test_probe_reads_how_far_the_surface_sinks_under_each_fixed_pixel():
-    depth0 = _board()
-    tracker = ProbeTracker(_cloud(depth0), CAMERA, num_points=64, seed=1)
-    uv0 = CAMERA.project(tracker.reference)
-    pressed = depth0.copy()
-    v, u = np.mgrid[0:depth0.shape[0], 0:depth0.shape[1]]
-    centre = np.round(uv0[0]).astype(int)
-    dent = 4.0 * np.exp(-((u - centre[0]) ** 2 + (v - centre[1]) ** 2) / (2 * 6.0 ** 2))
-    pressed += dent.astype(np.float32)  # farther from the camera: the surface sinks up to 4 mm
-    points, visible = tracker.update(pressed)
-    assert visible.all()
-    np.testing.assert_allclose(CAMERA.project(points), uv0, atol=1e-9)  # each point stays on its pixel
-    sink = points[:, 2] - tracker.reference[:, 2]
-    assert 3.3 < sink[0] <= 4.0  # the window's median, a little under the dent's 4 mm apex
-    far = np.linalg.norm(uv0 - uv0[0], axis=1) > 30
-    assert far.any() and np.abs(sink[far]).max() < 0.01
-
-
-def test_probe_ignores_a_spike_and_holds_points_without_depth_under_them():
-    depth0 = _board()
-    tracker = ProbeTracker(_cloud(depth0), CAMERA, num_points=32, seed=2, radius_px=2)
-    u, v = np.round(CAMERA.project(tracker.reference)[0]).astype(int)
-    spiky = depth0.copy()
-    spiky[v, u] = 900.0  # one wrong pixel (a Kinect edge artefact): the median keeps the surface
-    points, visible = tracker.update(spiky)
-    assert visible[0] and points[0, 2] == pytest.approx(700.0)
-    moved = depth0 + 2.0
-    mask = np.ones_like(depth0, dtype=bool)
-    mask[v - 5:v + 6, u - 5:u + 6] = False  # the instrument hides the first point's window
-    points, visible = tracker.update(moved, mask)
-    assert not visible[0] and points[0, 2] == pytest.approx(700.0)  # held where it was last read
-    assert visible[1:].all() and np.allclose(points[1:, 2], 702.0)
-    points, visible = tracker.update(np.zeros_like(depth0))  # a frame without depth (0 = none)
-    assert not visible.any() and np.allclose(points[1:, 2], 702.0)
-
-
-def test_probe_refuses_bad_options():
-    with pytest.raises(ValueError, match="radius_px"):
-        ProbeTracker(_cloud(_board()), CAMERA, radius_px=-1)
-    with pytest.raises(ValueError, match="min_valid"):
-        ProbeTracker(_cloud(_board()), CAMERA, min_valid=0.0)

@@ -17,7 +17,6 @@ from vfdata.tracking import (
     GeometryTracker,
     GroundTruthTracker,
     KLTTracker,
-    ProbeTracker,
     make_tracker,
     select_reference_points,
 )
@@ -66,9 +65,6 @@ def direct(name: str, frames: list[dict], ground_truth) -> list[tuple[np.ndarray
     elif name == "klt":
         tracker = KLTTracker(first["cloud"], CAMERA, first["image"], num_points=POINTS, seed=3)
         step = lambda f, fr: tracker.update(fr["image"], fr["depth"], fr["mask"])  # noqa: E731
-    elif name == "probe":
-        tracker = ProbeTracker(first["cloud"], CAMERA, num_points=POINTS, seed=3)
-        step = lambda f, fr: tracker.update(fr["depth"], fr["mask"])  # noqa: E731
     elif name == "groundtruth":
         tracker = GroundTruthTracker(first["cloud"], *ground_truth, camera=CAMERA, num_points=POINTS, seed=3)
         step = lambda f, fr: tracker.update(f, fr["mask"])  # noqa: E731

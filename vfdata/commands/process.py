@@ -14,8 +14,7 @@ from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
 # `vfdata --help` starts fast; the registry checks the tracker's name.
 TRACKER_HELP = ("point tracker: geometry (default), geometry+ (also follows the image texture), klt, cotracker "
-                "(needs its weights), probe (points fixed on their pixels, the depth re-read: a static depth camera), "
-                "groundtruth (the simulator's true points), static, or none (no tracks)")
+                "(needs its weights), groundtruth (the simulator's true points), static, or none (no tracks)")
 
 
 def _options(text: str | None) -> dict:

@@ -2,9 +2,7 @@
 
 `GeometryTracker` (geometry.py) is the paper's method (`mode="geometry+"` adds an image-flow term);
 `KLTTracker` (klt.py) lifts OpenCV Lucas-Kanade tracks with the depth map; `CoTrackerTracker`
-(cotracker.py) does the same with CoTracker3 from a local checkpoint; `ProbeTracker` (probe.py)
-keeps each point on its first pixel and re-reads the depth there (a static depth camera over tissue
-that stays in place); `GroundTruthTracker`
+(cotracker.py) does the same with CoTracker3 from a local checkpoint; `GroundTruthTracker`
 (groundtruth.py) carries the simulator's material points along, the upper bound and the reference of
 the error metrics. `make_tracker` (registry.py) builds any of them by name (`TRACKERS`) behind one
 interface, `Tracker`, fed one `FrameInputs` per frame.
@@ -14,7 +12,6 @@ from vfdata.tracking.cotracker import CoTrackerTracker, load_cotracker
 from vfdata.tracking.geometry import GeometryTracker, TrackerOptions
 from vfdata.tracking.groundtruth import GroundTruthTracker, ground_truth_tracks
 from vfdata.tracking.klt import KLTTracker
-from vfdata.tracking.probe import ProbeTracker
 from vfdata.tracking.registry import TRACKERS, FrameInputs, Tracker, make_tracker
 from vfdata.tracking.sampling import farthest_point_sampling, isolated_points, select_reference_points
 
@@ -25,7 +22,6 @@ __all__ = [
     "GeometryTracker",
     "GroundTruthTracker",
     "KLTTracker",
-    "ProbeTracker",
     "Tracker",
     "TrackerOptions",
     "farthest_point_sampling",

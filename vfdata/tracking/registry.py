@@ -32,7 +32,6 @@ from vfdata.tracking.cotracker import CoTrackerTracker
 from vfdata.tracking.geometry import GeometryTracker
 from vfdata.tracking.groundtruth import GroundTruthTracker
 from vfdata.tracking.klt import KLTTracker
-from vfdata.tracking.probe import ProbeTracker
 from vfdata.tracking.sampling import select_reference_points
 
 # The simulator's material points and normals, (F, P, 3) each: its ground_truth/ folder, or the arrays.
@@ -181,25 +180,6 @@ class _KLT(_Adapter):
         return self._tracker.update(frame.image_bgr, frame.depth_mm, frame.mask)
 
 
-class _Probe(_Adapter):
-    """`probe` (vfdata.tracking.probe): each point keeps its first pixel and re-reads the depth there;
-    options: radius_px, min_valid. For a static depth camera over tissue that stays in place."""
-
-    name = "probe"
-    inputs = frozenset({"depth_mm", "mask"})
-
-    def __init__(self, num_points: int, seed: int, **options):
-        super().__init__(num_points, seed)
-        self.options = options
-
-    def _build(self, frame: FrameInputs) -> None:
-        self._tracker = ProbeTracker(frame.cloud_mm, frame.camera, num_points=self.num_points, seed=self.seed,
-                                     **self.options)
-
-    def _update(self, frame: FrameInputs) -> tuple[np.ndarray, np.ndarray]:
-        return self._tracker.update(frame.depth_mm, frame.mask)
-
-
 class _CoTracker(_Adapter):
     """`cotracker` (vfdata.tracking.cotracker), offline; options: checkpoint (required), device,
     window_len. The checkpoint is loaded when the tracker is made."""
@@ -300,7 +280,6 @@ _MAKERS: dict[str, Callable[..., _Adapter]] = {
     "geometry": _geometry("geometry"),
     "geometry+": _geometry("geometry+"),
     "klt": _KLT,
-    "probe": _Probe,
     "cotracker": _CoTracker,
     "groundtruth": _GroundTruth,
     "static": _Static,

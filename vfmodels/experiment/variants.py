@@ -20,7 +20,6 @@ PROCESSINGS: dict[str, Processing] = {
     "geometry": Processing(".processed.mcap"),
     "klt": Processing(".klt.mcap", "klt"),
     "geometry+": Processing(".geometry_plus.mcap", "geometry+"),
-    "probe": Processing(".probe.mcap", "probe"),
     "groundtruth": Processing(".gt.mcap", "groundtruth"),
     # the simulator's true depth and mask, our object frame and geometry tracker (a ladder rung)
     "truedepth": Processing(".truedepth.mcap", "geometry", depth="recorded", segment="recorded"),
@@ -132,7 +131,7 @@ TRACKER_VARIANTS: dict[str, Variant] = {
     f"{model}@{tracker}": Variant(f"{model}@{tracker}", f"{VISIONFORCE_VARIANTS[model].label.split(' (')[0]} on "
                                   f"{tracker} tracks", VISIONFORCE_VARIANTS[model].config, tracker, "II",
                                   kind=VISIONFORCE_VARIANTS[model].kind)
-    for model in ("visionforce", "ridge") for tracker in ("geometry", "geometry+", "probe")
+    for model in ("visionforce", "ridge") for tracker in ("geometry", "geometry+")
 }
 
 ALL_VARIANTS: dict[str, Variant] = {**VISIONFORCE_VARIANTS, **VISIONFORCE_ABLATIONS, **PAPER_VARIANTS,
