@@ -54,6 +54,9 @@ def test_the_real_recording_converts_processes_and_trains_as_published(tmp_path)
     study = json.loads((out / "study.json").read_text())
     assert set(study["temporal"]) >= {"visionforce", "constant", "ridge_depth_change", "ridge_masked_depth"}
     assert study["tracking"]["peaks"] and (out / "force_time.png").is_file() and (out / "tracks_peak.png").is_file()
+    # the recording's own facts (no training involved): pulls look alike in both stretches, presses do not
+    agree = study["stretch_responses"]["map_agreement"]
+    assert agree["fx"] > 0.6 and agree["fy"] > 0.5 and agree["fz"] < 0.3 and (out / "force_maps.png").is_file()
     derived = _run("-m", "vfdata", "info", str(tmp_path / "gao2018_1_1.processed.mcap"))
     assert "object_frame_kind=board_plane" in derived and "depth=sensor" in derived
     assert sorted((p.name, p.stat().st_size) for p in RAW.rglob("*")) == before
