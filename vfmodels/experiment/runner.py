@@ -33,6 +33,7 @@ from vfdata.device import lightning_accelerator, resolve_device
 from vfdata.errors import InputError, VisionForceError
 from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
+from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
@@ -45,6 +46,7 @@ from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
 # Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
 PAPER_PROTOCOL = ("--early_stopping.patience=null",)
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -175,6 +177,11 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     out = Path(out)
     manifest = load_manifest(manifest_path)
     convert_seconds = convert_all(list(manifest.entries), options.progress)
+    # what the splits' labels allow, said before the long part (vfdata.split_forces)
+    splits = summarise(manifest_forces(manifest))
+    write_split_report(out, splits)
+    for line in split_warnings(splits):
+        log.warning(f"warning: {manifest.path}: {line}")
     variants = options.chosen()
     if any_depth_only(list(manifest.entries)):
         variants = for_depth_only(variants)
