@@ -41,11 +41,14 @@ def test_force_beyond_training_is_counted_per_component_and_said():
     assert summary["test"]["beyond_training"] == pytest.approx(0.25)
     assert summary["test"]["beyond_training_per_component"] == {"fx": 0.05, "fy": 0.0, "fz": 0.2}
     (line,) = split_warnings(summary)
-    assert line.startswith("test: 25% of its 100 frames have force beyond every training value")
+    assert line.startswith("test: 25% of its 100 frames have force beyond the training range by more than a tenth")
     assert "Fz down to -105.0 N (training " in line and "Fx up to 3.0 N" in line and "Fy" not in line
     test[:, :] = train[:100]
-    test[0, 1] = train[:, 1].max() + 0.1  # one frame in a hundred: under the 5% worth a word
+    test[:3, 1] = train[:, 1].max() + 1.0  # three frames in a hundred: under the 5% worth a word
+    assert summarise({"train": train, "test": test})["test"]["beyond_training"] == pytest.approx(0.03)
     assert split_warnings(summarise({"train": train, "test": test})) == []
+    test[:50, 1] = train[:, 1].max() + 0.3  # within a tenth of training's 4 N range: not beyond
+    assert summarise({"train": train, "test": test})["test"]["beyond_training"] == 0.0
 
 
 def test_coupled_training_components_are_said_and_a_constant_one_has_no_correlation():

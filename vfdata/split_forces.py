@@ -3,8 +3,9 @@
 Two things in a split's labels decide what a model of the video can learn, whatever the model:
 
 - **Force beyond training.** A regression rarely extrapolates: test frames whose force lies beyond
-  every training value (per component) are under-predicted by every model we have tried (Gao et al.
-  2018: the test stretch's -105 N press against training's -66 N; docs/results.md).
+  the training range (per component, by more than a tenth of it) are under-predicted by every model
+  we have tried (Gao et al. 2018: the test stretch's -105 N press against training's -66 N;
+  docs/results.md).
 - **Coupled components.** Components that always move together in training cannot be told apart:
   the model learns one from the other's motion, and a test where they come apart finds it out (on the
   same recording training couples Fz to Fx at -0.52, the test stretch at 0.08).
@@ -26,8 +27,13 @@ from vfdata.recording import Recording
 
 COMPONENTS = ("fx", "fy", "fz")
 LABELS = {"fx": "Fx", "fy": "Fy", "fz": "Fz"}
-BEYOND_WARN = 0.05  # share of a split's frames beyond training's force range worth a warning
-COUPLING_WARN = 0.9  # |correlation| between two components in training worth a warning
+# A frame is beyond training when a component lies outside training's range by more than this share of
+# that range: a component that stays near zero in training (0.2 N of sensor noise) should not make every
+# small excursion of a test "unseen".
+BEYOND_MARGIN = 0.1
+BEYOND_WARN = 0.05  # share of a split's frames beyond training worth a warning
+COUPLING_WARN = 0.95  # |correlation| between two components in training worth a warning (the simulator's
+# tube couples Fx and Fz at 0.8-0.9 in every split; Gao et al.'s pulls Fx and Fy at 0.98 in training only)
 PAIRS = (("fx", "fy"), ("fx", "fz"), ("fy", "fz"))
 
 
@@ -58,8 +64,8 @@ def _coupling(force_n: np.ndarray) -> dict[str, float | None]:
 
 def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
     """Per split: frames, each component's min and max (N), how the components correlate, and (for
-    every split but train) the share of frames with a component beyond training's range, per
-    component and any."""
+    every split but train) the share of frames with a component beyond training's range (by more than
+    `BEYOND_MARGIN` of it), per component and any."""
     train = forces.get("train")
     out = {}
     for split, force in forces.items():
@@ -69,7 +75,9 @@ def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
                      "max_n": force.max(axis=0).round(3).tolist() if len(force) else None,
                      "coupling": _coupling(force)}
         if split != "train" and train is not None and len(train) and len(force):
-            below, above = force < train.min(axis=0), force > train.max(axis=0)
+            low, high = train.min(axis=0), train.max(axis=0)
+            margin = BEYOND_MARGIN * (high - low)
+            below, above = force < low - margin, force > high + margin
             beyond = below | above
             row["beyond_training"] = float(beyond.any(axis=1).mean())
             row["beyond_training_per_component"] = dict(zip(COMPONENTS, beyond.mean(axis=0).round(4).tolist(),
@@ -88,12 +96,13 @@ def split_warnings(summary: dict[str, dict]) -> list[str]:
             beyond = []
             for c, lo, hi, tlo, thi in zip(COMPONENTS, row["min_n"], row["max_n"], train["min_n"], train["max_n"],
                                            strict=True):
-                if lo < tlo:
+                margin = BEYOND_MARGIN * (thi - tlo)
+                if lo < tlo - margin:
                     beyond.append(f"{LABELS[c]} down to {lo:.1f} N (training {tlo:.1f})")
-                if hi > thi:
+                if hi > thi + margin:
                     beyond.append(f"{LABELS[c]} up to {hi:.1f} N (training {thi:.1f})")
-            lines.append(f"{split}: {share:.0%} of its {row['frames']} frames have force beyond every training value "
-                         f"({', '.join(beyond)}): expect them under-predicted")
+            lines.append(f"{split}: {share:.0%} of its {row['frames']} frames have force beyond the training range by "
+                         f"more than a tenth of it ({', '.join(beyond)}): expect them under-predicted")
     if train is not None:
         coupled = [f"{LABELS[a]}-{LABELS[b]} {v:+.2f}" for (a, b), v in
                    zip(PAIRS, train["coupling"].values(), strict=True) if v is not None and abs(v) >= COUPLING_WARN]
