@@ -51,7 +51,9 @@ def manifest_forces(manifest: Manifest) -> dict[str, np.ndarray]:
     return {split: np.concatenate(chunks) for split, chunks in parts.items()}
 
 
-def _coupling(force_n: np.ndarray) -> dict[str, float | None]:
+def component_coupling(force_n: np.ndarray) -> dict[str, float | None]:
+    """Correlations between the force components (T, 3): `fx_fy`, `fx_fz`, `fy_fz` (None for fewer
+    than three frames or a component that does not vary)."""
     if len(force_n) < 3:
         return {f"{a}_{b}": None for a, b in PAIRS}
     spread = force_n.std(axis=0) > 1e-9
@@ -60,6 +62,16 @@ def _coupling(force_n: np.ndarray) -> dict[str, float | None]:
     index = {name: i for i, name in enumerate(COMPONENTS)}
     return {f"{a}_{b}": float(c[index[a], index[b]]) if spread[index[a]] and spread[index[b]] else None
             for a, b in PAIRS}
+
+
+def beyond_training(force_n: np.ndarray, train_force_n: np.ndarray, margin: float = BEYOND_MARGIN) -> np.ndarray:
+    """(T, 3) bool: which components of each frame (T, 3) lie outside the training forces' range
+    (per component) by more than `margin` of that range (0: any value outside it)."""
+    train = np.asarray(train_force_n, dtype=np.float64)
+    low, high = train.min(axis=0), train.max(axis=0)
+    slack = margin * (high - low)
+    force = np.asarray(force_n, dtype=np.float64)
+    return (force < low - slack) | (force > high + slack)
 
 
 def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -73,12 +85,9 @@ def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
         row: dict = {"frames": len(force),
                      "min_n": force.min(axis=0).round(3).tolist() if len(force) else None,
                      "max_n": force.max(axis=0).round(3).tolist() if len(force) else None,
-                     "coupling": _coupling(force)}
+                     "coupling": component_coupling(force)}
         if split != "train" and train is not None and len(train) and len(force):
-            low, high = train.min(axis=0), train.max(axis=0)
-            margin = BEYOND_MARGIN * (high - low)
-            below, above = force < low - margin, force > high + margin
-            beyond = below | above
+            beyond = beyond_training(force, train)
             row["beyond_training"] = float(beyond.any(axis=1).mean())
             row["beyond_training_per_component"] = dict(zip(COMPONENTS, beyond.mean(axis=0).round(4).tolist(),
                                                             strict=True))

@@ -5,7 +5,8 @@ A model learns, from the training frames, which surface motion goes with which f
 stretch the same force comes with another motion (a press at another place, a pull no longer coupled
 to the press), no model of the video can carry it over. The response map of a component over a set
 of frames is the per-pixel correlation between the depth change and that force component; two
-stretches agree as far as their maps correlate over the tissue. Pure functions on arrays: depths
+stretches agree as far as their maps correlate over the tissue (how the components couple in each:
+`vfdata.split_forces.component_coupling`). Pure functions on arrays: depths
 (T, H, W) mm with NaN unknown, forces (T, 3) N.
 """
 
@@ -40,10 +41,3 @@ def map_agreement(maps_a: np.ndarray, maps_b: np.ndarray, region: np.ndarray) ->
     """Per component, the correlation of two stretches' response maps (3, H, W) over `region` (H, W)
     bool: 1 = the force moves the same places the same way in both."""
     return [float(np.corrcoef(a[region], b[region])[0, 1]) for a, b in zip(maps_a, maps_b, strict=True)]
-
-
-def component_coupling(force_n: np.ndarray, frames: np.ndarray) -> dict[str, float]:
-    """Correlations between the force components over `frames`: a press that comes with a pull in
-    training teaches a model to read one from the other."""
-    c = np.corrcoef(np.asarray(force_n)[frames].T)
-    return {"fx_fy": float(c[0, 1]), "fx_fz": float(c[0, 2]), "fy_fz": float(c[1, 2])}

@@ -23,8 +23,9 @@ from vfdata.metrics import coverage, force_magnitude, force_peaks, nearest_neigh
 from vfdata.processing import frame_image
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
+from vfdata.split_forces import beyond_training, component_coupling
 from vfdata.tracking.consistency import forward_backward_error
-from vfmodels.experiment.force_maps import component_coupling, depth_change, map_agreement, response_maps
+from vfmodels.experiment.force_maps import depth_change, map_agreement, response_maps
 from vfmodels.experiment.frame_baselines import (
     depth_change_features,
     masked_depth_features,
@@ -121,7 +122,7 @@ def stretch_responses(depths: np.ndarray, masks: np.ndarray, force: np.ndarray,
     save_figure(fig, out / "force_maps.png")
     agreement = map_agreement(maps["train"], maps["test"], region)
     return {"map_agreement": dict(zip(("fx", "fy", "fz"), agreement, strict=True)),
-            "coupling": {name: component_coupling(force, idx) for name, idx in frames.items()}}
+            "coupling": {name: component_coupling(force[idx]) for name, idx in frames.items()}}
 
 
 def _table(results: dict[str, dict[str, float]]) -> str:
@@ -168,7 +169,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
     # What the unseen peak costs: the same test frames less those whose force lies outside every
     # training value (per component, beyond the training minimum or maximum).
     train_force = force[slice(*splits["train"])]
-    inside = ((force >= train_force.min(axis=0)) & (force <= train_force.max(axis=0))).all(axis=1)
+    inside = ~beyond_training(force, train_force, margin=0.0).any(axis=1)
     in_range = {}
     for name, (times, pred) in network_pred.items():
         frames = np.array([time_to_frame[int(t)] for t in times])
