@@ -8,10 +8,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
+
+from vfdata.recording import layout
+from vfdata.recording.inspect import check_file
+from vfdata.recording.reader import Recording
 
 T0_NS = 1_700_000_000_123_456_789
 FRAME_NS = 33_333_333
@@ -177,3 +182,48 @@ def write_bag(path: Path, spec: BagSpec) -> BagSpec:
             garbage = spec.force_payload is not None and msgtype == "geometry_msgs/msg/WrenchStamped"
             writer.write(connections[topic], receive_ns, spec.force_payload if garbage else serialize(msg, msgtype))
     return spec
+
+
+def check_recording(out: Path, spec: BagSpec) -> Recording:
+    """The converted recording `out` against the bag `spec` it came from, topic by topic, value by value."""
+    assert check_file(out) == []  # what `vfdata check` runs: layout, stamps, CRCs
+    rec = Recording.open(out)
+    n = spec.frames
+    # frames: the left stamps, both images carry them; pixels exact for PNG output
+    assert np.array_equal(rec.frame_times_ns, spec.frame_ns)
+    assert np.array_equal(rec.log_times_ns(layout.RIGHT_IMAGE), spec.frame_ns)
+    for i in range(n):
+        frame = rec.frame(i)
+        left, right = spec.images[i]
+        if spec.encoding == "mono8":
+            left, right = (cv2.cvtColor(img[..., 1], cv2.COLOR_GRAY2BGR) for img in (left, right))
+        assert np.array_equal(frame.left, left) and np.array_equal(frame.right, right)
+    # camera info every frame, with the bag's K, D, P and the layout's frame ids
+    assert rec.topics[layout.LEFT_INFO].count == n and rec.topics[layout.RIGHT_INFO].count == n
+    info_l, info_r = rec.camera_infos
+    assert (info_l.frame_id, info_r.frame_id) == (layout.LEFT_FRAME, layout.RIGHT_FRAME)
+    assert (info_l.width, info_l.height) == (spec.width, spec.height)
+    assert np.array_equal(info_l.k, [[FX, 0, CX], [0, FX, CY], [0, 0, 1]])
+    assert np.array_equal(info_l.d, [0.01, -0.02, 0.0, 0.0, 0.001])
+    assert info_r.p[0, 3] == -FX * BASELINE_M
+    assert rec.stereo.baseline_mm == pytest.approx(BASELINE_M * 1000)
+    tf = rec.message(layout.TF_STATIC, 0).transforms[0]
+    assert (tf.frame_id, tf.child_frame_id) == (layout.LEFT_FRAME, layout.RIGHT_FRAME)
+    assert tf.translation == pytest.approx((BASELINE_M, 0.0, 0.0))
+    # force: every sample, stamps and values exact
+    force = rec.force
+    assert np.array_equal(force.times_ns, spec.force_ns)
+    assert np.array_equal(force.wrench, spec.wrench)
+    assert force.frame_id == "ati_sensor"
+    # pose, as PoseStamped whatever the bag had
+    if spec.pose_type:
+        pose = rec.ecm_pose
+        assert np.array_equal(pose.times_ns, spec.pose_ns)
+        assert np.allclose(pose.position_m, spec.pose[:, :3], atol=1e-15)
+        assert np.allclose(pose.quaternion_xyzw, spec.pose[:, 3:], atol=1e-15)
+        assert rec.topics[layout.ECM_POSE].msgtype == "geometry_msgs/msg/PoseStamped"
+    else:
+        assert not rec.has(layout.ECM_POSE)
+    # the file is in time order
+    assert rec.metadata.converter.startswith("vfdata convert (ROS")
+    return rec
