@@ -87,6 +87,16 @@ def main(argv: list[str] | None = None) -> int:
         m = per_component_metrics(design[test] @ weights, force[test])
         print(f"  {name:14s} {m['rmse_fx']:8.2f} {m['rmse_fy']:8.2f} {m['rmse_fz']:8.2f} {m['r2_fx']:6.2f} "
               f"{m['r2_fy']:6.2f} {m['r2_fz']:6.2f} {m['r2']:7.2f}")
+    # The dent without the pulls: what of its volume the tilts do not explain (fitted on training).
+    tilts = np.c_[features[:, 1:3], np.ones(count)]
+    weights, *_ = np.linalg.lstsq(tilts[train], features[train, 3], rcond=None)
+    dent_alone = features[:, 3] - tilts @ weights
+    line = np.c_[dent_alone, np.ones(count)]
+    weights, *_ = np.linalg.lstsq(line[train], force[train, 2], rcond=None)
+    r2 = per_component_metrics(np.c_[np.zeros((len(test), 2)), line[test] @ weights], force[test])["r2_fz"]
+    corr = [np.corrcoef(dent_alone[idx], force[idx, 2])[0, 1] for idx in (train, test)]
+    print(f"\nthe dent less what the tilts explain: correlation with Fz {corr[0]:+.2f} / {corr[1]:+.2f} "
+          f"(train / test), Fz R² {r2:.2f} from it")
     return 0
 
 
