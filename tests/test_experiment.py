@@ -94,6 +94,7 @@ def test_rgbd_recordings_run_the_project_pipeline_on_depth_only_tracks(tmp_path)
             spec = config_spec(CONFIGS / v.config, v.overrides)
             assert not (spec.mirror_augment or spec.rotate_augment or spec.tilt_augment_deg), v.name
             assert "--model.symmetry_turns=0" in v.overrides
+            assert "tube symmetries" not in v.label, v.label  # the tables say what ran
         else:
             assert v.overrides == ALL_VARIANTS[v.name].overrides
     src = make_rgbd(tmp_path / "rgbd", n=3)

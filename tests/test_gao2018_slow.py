@@ -49,6 +49,7 @@ def test_the_real_recording_converts_processes_and_trains_as_published(tmp_path)
          "--seeds", "1", "--epochs", "1", "--quiet")
     metrics = json.loads((out / "runs" / "visionforce" / "seed0" / "metrics.json").read_text())
     assert metrics["test_frames"] == 184 and metrics["pooled"]["rmse_fz"] > 0
+    assert "VisionForce (deformation tokens, flat tissue: no symmetries)" in (out / "table1_force.md").read_text()
     splits = json.loads((out / "splits.json").read_text())  # said before training: 18 of 184 beyond
     assert splits["test"]["frames"] == 184 and splits["test"]["beyond_training"] == pytest.approx(18 / 184)
     _run("-m", "vfmodels.experiment.real_study", str(path), "--out", str(out), "--tracker-options",

@@ -18,7 +18,14 @@ from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
 from vfdata.tracking import ground_truth_tracks
 from vfmodels.experiment.prepare import derived_path
-from vfmodels.experiment.variants import ALL_VARIANTS, LADDER_MODELS, LADDER_RUNGS, TRACKER_SUFFIX, Variant
+from vfmodels.experiment.variants import (
+    ALL_VARIANTS,
+    LADDER_MODELS,
+    LADDER_RUNGS,
+    TRACKER_SUFFIX,
+    Variant,
+    for_depth_only,
+)
 from vfmodels.reports import figures, tables
 from vfmodels.reports.tables import run_metrics
 
@@ -52,8 +59,7 @@ def _in_table(name: str, table: str) -> bool:
     return table in ALL_VARIANTS.get(name, Variant(name, name, "")).table.split("+")
 
 
-def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str) -> dict[str, Path]:
-    labels = {n: v.label for n, v in ALL_VARIANTS.items()}
+def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: dict[str, str]) -> dict[str, Path]:
     aggregated = {name: tables.aggregate_seeds(r) for name, r in runs.items()}
     paths = {}
     for key, number, stem, title in (
@@ -295,12 +301,16 @@ def _tracked_points_figure(out: Path, test: ManifestEntry, trackers: list[str]) 
 def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[str, Path]:
     """All tables and plots of a results folder (also on a partial grid)."""
     out = Path(out)
+    ran = json.loads((out / "experiment.json").read_text()) if (out / "experiment.json").is_file() else {}
     if manifest is None:
-        manifest = json.loads((out / "experiment.json").read_text())["manifest"]
+        manifest = ran["manifest"]
     data = load_manifest(manifest)
     entries = list(data.entries)
     runs = load_runs(out)
-    paths = force_tables(out, runs, data.name) if runs else {}
+    # on RGB-D recordings the variants ran as flat tissue (variants.for_depth_only): the labels say so
+    variants = list(ALL_VARIANTS.values())
+    labels = {v.name: v.label for v in (for_depth_only(variants) if ran.get("flat_tissue") else variants)}
+    paths = force_tables(out, runs, data.name, labels) if runs else {}
     trackers = [t for t in TRACKER_SUFFIX if any(derived_path(e, t).is_file() for e in entries)]
     rows, per_recording = tracking_table(entries, trackers)
     if rows:

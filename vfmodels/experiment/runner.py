@@ -183,7 +183,8 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     for line in split_warnings(splits):
         log.warning(f"warning: {manifest.path}: {line}")
     variants = options.chosen()
-    if any_depth_only(list(manifest.entries)):
+    flat_tissue = any_depth_only(list(manifest.entries))
+    if flat_tissue:
         variants = for_depth_only(variants)
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
@@ -200,7 +201,7 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     (out / "experiment.json").write_text(json.dumps({
         "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,
         "epochs": options.epochs, "depth": options.depth, "segment": options.segment,
-        "max_frames": options.max_frames, "cpu_count": os.cpu_count(),
+        "max_frames": options.max_frames, "cpu_count": os.cpu_count(), "flat_tissue": flat_tissue,
     }, indent=2))
     grid = [(v, s) for v in variants for s in range(options.seeds)]
     todo = [(v, s) for v, s in grid if not (run_folder(out, v, s) / "metrics.json").is_file()]

@@ -166,6 +166,7 @@ def for_depth_only(variants: list[Variant]) -> list[Variant]:
         if v.name in own:
             v = replace(v, tracker=VISIONFORCE_DEPTH_ONLY_TRACKER)
         if v.config.startswith("visionforce"):
-            v = replace(v, overrides=(*FLAT_TISSUE_OVERRIDES, *v.overrides))
+            v = replace(v, overrides=(*FLAT_TISSUE_OVERRIDES, *v.overrides),
+                        label=v.label.replace("tube symmetries", "flat tissue: no symmetries"))
         flat.append(v)
     return flat
