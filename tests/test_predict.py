@@ -373,3 +373,30 @@ def test_the_trained_tracker_is_read_from_the_checkpoint_as_a_known_name(tmp_pat
     torch.save(checkpoint, path)
     with pytest.raises(InputError, match="unknown tracker"):
         predict.trained_tracker(path)
+
+
+@pytest.mark.parametrize("kind, up_known, says", [
+    ("tissue", True, "gravity up"), ("tissue", False, "arbitrary"),
+    ("board_plane", False, "the image's right"), ("camera", False, "the image's right")])
+def test_the_x_axis_is_described_by_the_frames_kind(kind, up_known, says):
+    from vfdata.recon.object_frame import x_axis_meaning
+
+    assert x_axis_meaning(kind, up_known).split(":")[0] == says
+
+
+def test_predict_on_an_rgbd_recording_says_its_board_frame(tmp_path):
+    """No ECM pose on an RGB-D recording, yet the board frame's X is not arbitrary: the output says what it is."""
+    from tests.rgbd_fixtures import make_rgbd
+    from vfdata.conversion.raw_folder import ConvertOptions
+    from vfdata.conversion.raw_rgbd import convert_rgbd_folder
+    from vfdata.processing import ProcessOptions
+
+    src = make_rgbd(tmp_path / "rec", n=6, holes=False)
+    recording = convert_rgbd_folder(src, tmp_path / "rec.mcap", options=ConvertOptions(progress=False, workers=1))
+    ckpt = _save_checkpoint(_regressor(), tmp_path / "m.ckpt", {"spec": {"input": "tracks", "fps": 30.0}})
+    result = predict.predict_recording(recording, ckpt, tmp_path / "out", ProcessOptions(num_points=32), window=4,
+                                       video=False, progress=False)
+    assert not result.up_known and result.x_axis.startswith("the image's right")
+    with Recording.open(result.force_mcap) as rec:
+        assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == result.x_axis
+    assert len(read_force_estimate(result.force_mcap)[0]) == 6

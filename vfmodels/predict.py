@@ -10,7 +10,8 @@ turns the tracks into forces with the trained model, and writes
 
 Without an ECM pose (gravity unknown) the object frame's X axis is arbitrary: the image's up made
 perpendicular to the tissue axis Z (`vfdata.recon.object_frame`), so Fx and Fy are meaningful only up
-to that choice; the output metadata says which (`x_axis`).
+to that choice; on an RGB-D recording the frame is the board's (X: the image's right made perpendicular
+to the board's normal) or the camera's. The output metadata says which (`x_axis`).
 
 The model is causal: frame t's force uses frames up to t (and t+1 for its central-difference
 velocity). By default the LSTM runs from a zero state over the last `window` = 16 frames (the clip
@@ -34,7 +35,7 @@ from vfdata.clips.tokens import frame_rate, mirror_y, point_tokens, recording_si
 from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
-from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
@@ -146,6 +147,7 @@ class PredictResult:
     force_fps: float  # model frames/s (tokens + encoder + LSTM), measured
     stage_fps: dict[str, float]
     up_known: bool
+    x_axis: str  # what the object frame's X is (vfdata.recon.object_frame.x_axis_meaning)
 
 
 def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
@@ -191,8 +193,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     started = time.perf_counter()
     force, side = forces_from_tracks(regressor, spec, tracks, window)
     force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
-    x_axis = ("gravity up made perpendicular to Z (from the ECM pose)" if tracks.metadata.up_known else
-              "arbitrary: the image's up direction made perpendicular to Z (no ECM pose)")
+    x_axis = x_axis_meaning(tracks.metadata.get("object_frame_kind", "tissue"), tracks.metadata.up_known)
     meta = {"stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
@@ -204,7 +205,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
                                  title=f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})")
         video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress) if video else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
-                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known)
+                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,

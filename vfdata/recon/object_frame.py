@@ -81,6 +81,20 @@ class ObjectFrame:
                    bool(values["up_known"]), float(values["score_deg"]))
 
 
+# What X is, by the frame's kind (`diagnostics["kind"]`, a derived MCAP's `object_frame_kind`); the
+# text before ':' is the short form (plot titles). Flat tissue frames: vfdata.recon.plane.
+_X_AXIS = {"board_plane": "the image's right: the camera's x made perpendicular to the board's normal Z",
+           "camera": "the image's right: the camera frame itself"}
+
+
+def x_axis_meaning(kind: str, up_known: bool) -> str:
+    """What a frame's X axis means, in words, for its kind ('tissue', 'board_plane', 'camera')."""
+    if kind in _X_AXIS:
+        return _X_AXIS[kind]
+    return ("gravity up: from the ECM pose, made perpendicular to Z" if up_known else
+            "arbitrary: the image's up direction made perpendicular to Z (no ECM pose)")
+
+
 def hemisphere_directions(steps: int = CANDIDATE_STEPS) -> np.ndarray:
     """(steps*steps, 3) unit directions covering the hemisphere z >= 0: `steps` polar angles (cell
     centres from the pole to the equator) times `steps` azimuths. A hemisphere suffices because a

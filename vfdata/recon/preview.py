@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from vfdata.calibration import PinholeCamera
-from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 
 # BGR; the axes in the usual RGB = XYZ convention.
 AXIS_COLOURS = ((60, 60, 235), (60, 200, 60), (235, 120, 40))
@@ -49,8 +49,10 @@ def first_frame_preview(image_bgr: np.ndarray, mask: np.ndarray, camera: Pinhole
             cv2.arrowedLine(out, origin, tip, colour, 2, cv2.LINE_AA, tipLength=0.15)
             draw_label(out, name, (tip[0] + 4, tip[1] + 4), colour)
         cv2.circle(out, origin, 4, (255, 255, 255), -1, cv2.LINE_AA)
-    up = "gravity-up from the ECM pose" if frame.up_known else "X from the image: no ECM pose or gravity_up"
-    draw_label(out, f"mask {int(inside.sum())} px; object frame: search score {frame.score_deg:.1f} deg, {up}", (8, 20))
+    kind = frame.diagnostics.get("kind", "tissue")
+    found = f"search score {frame.score_deg:.1f} deg, " if kind == "tissue" else f"{kind}, "
+    draw_label(out, f"mask {int(inside.sum())} px; object frame: {found}X {x_axis_meaning(kind, frame.up_known)}",
+               (8, 20))
     draw_label(out, f"axes {axis_mm:g} mm: X red, Y green, Z blue (wide end -> narrow); "
                f"{0 if points_mm is None else len(points_mm)} tracked points", (8, 40))
     if warning:

@@ -22,16 +22,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "point model and writes OUT/<id>.force.mcap (/force/estimate, WrenchStamped in the object "
                     "frame 'tissue_object'), OUT/<id>.force.png and OUT/<id>.overlay.mp4; existing outputs are "
                     "kept unless --overwrite. Without an ECM pose the object frame's X axis is arbitrary (the "
-                    "image's up direction made perpendicular to the tissue axis). --stream feeds the frames one "
-                    "by one to the live estimator instead and reports its per-frame latency.")
-    p.add_argument("recording", type=Path, help="recording MCAP (stereo images; force and ECM pose optional)")
+                    "image's up direction made perpendicular to the tissue axis); on an RGB-D recording the frame is "
+                    "the board's (Z its normal, X the image's right). The output says which. --stream feeds the "
+                    "frames one by one to the live estimator instead and reports its per-frame latency.")
+    p.add_argument("recording", type=Path, help="recording MCAP (stereo or RGB-D; force and ECM pose optional)")
     p.add_argument("--ckpt", type=Path, required=True,
                    help="trained checkpoint: a .ckpt file, or a run folder (its best checkpoint)")
     p.add_argument("--prompt", help="first-frame tissue prompt, e.g. box:x0,y0,x1,y1 "
                                     "(default: prompt_box of the recording's metadata)")
     p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
-    p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
-    p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
+    p.add_argument("--depth", default="sgbm",
+                   help="depth backend (default sgbm; an RGB-D recording's own depth is always used)")
+    p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack; plane for RGB-D)")
     p.add_argument("--tracker", help="point tracker (default: the one whose tracks the model was trained on, "
                                      "saved in the checkpoint; geometry for a checkpoint that does not say)")
     p.add_argument("--window", type=int, default=16,
@@ -82,8 +84,7 @@ def run(args: argparse.Namespace) -> int:
                              tracker=args.tracker, tracker_options=args.tracker_options)
     result = predict_recording(args.recording, args.ckpt, args.out, options, window=window, video=not args.no_video,
                                progress=not args.quiet, overwrite=args.overwrite, device=args.device)
-    print(f"{result.frames} frames; object frame X axis "
-          f"{'from gravity (ECM pose)' if result.up_known else 'arbitrary (no ECM pose)'}")
+    print(f"{result.frames} frames; object frame X axis: {result.x_axis}")
     stages = {**result.stage_fps, "force": result.force_fps}
     print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     for path in (result.force_mcap, result.plot, result.video):
