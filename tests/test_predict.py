@@ -399,4 +399,6 @@ def test_predict_on_an_rgbd_recording_says_its_board_frame(tmp_path):
     assert not result.up_known and result.x_axis.startswith("the image's right")
     with Recording.open(result.force_mcap) as rec:
         assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == result.x_axis
+        _, tf = next(rec.messages(layout.TF_STATIC))  # the object frame hangs off the depth camera
+        assert tf.transforms[0].frame_id == layout.DEPTH_FRAME
     assert len(read_force_estimate(result.force_mcap)[0]) == 6

@@ -16,6 +16,7 @@ from vfdata.errors import InputError
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recon.plane import PlaneSegmenter, board_frame, fit_board_plane
 from vfdata.recon.prompt import Prompt
+from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedRecording
 
 CAMERA = PinholeCamera(FX, FX, (DEPTH_SIZE - 1) / 2, (DEPTH_SIZE - 1) / 2, DEPTH_SIZE, DEPTH_SIZE)
@@ -89,6 +90,12 @@ def test_process_rgbd_uses_recorded_depth_board_frame_and_tracks_the_press(tmp_p
     assert true_sink.mean() > 3.0 and sink.mean() > 0.5
     assert np.abs(tracks.points_object_mm[-1, edge, 2] - tracks.points_object_mm[0, edge, 2]).mean() < 1.0
     assert (tmp_path / "rec.processed.png").is_file()
+    # ROS tf: the object frame, the mask and the depth hang off the depth camera that saw them
+    with Recording.open(out) as derived_file:
+        _, tf = next(derived_file.messages(layout.TF_STATIC))
+        assert tf.transforms[0].frame_id == layout.DEPTH_FRAME == meta.get("camera_frame_id")
+        assert {next(derived_file.messages(topic))[1].frame_id
+                for topic in (layout.TISSUE_MASK, layout.TISSUE_DEPTH)} == {layout.DEPTH_FRAME}
 
 
 def test_process_rgbd_refuses_stereo_depth_and_the_tube_frame(tmp_path):

@@ -197,7 +197,8 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     meta = {"stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
-    force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite)
+    force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
+                                      camera_frame_id=tracks.metadata.get("camera_frame_id", layout.LEFT_FRAME))
     with Recording.open(src) as rec:
         measured = rec.force_at(tracks.times_ns)[:, :3] if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")

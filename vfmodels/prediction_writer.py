@@ -20,6 +20,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from vfdata.clips.tokens import latest_clip_frames
 from vfdata.errors import InputError, OutputExistsError
 from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
 
 FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true")
@@ -109,13 +110,14 @@ class ForceEstimateWriter(PredictionCollector):
         for rid in recordings:
             path, entry = targets[rid]
             rows = frames["recording"] == rid
-            frame = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan"))
+            frame, camera = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan")), layout.LEFT_FRAME
             if entry is not None and entry.processed.is_file():
                 with DerivedRecording.open(entry.processed) as derived:
-                    frame = derived.object_frame
+                    frame, camera = derived.object_frame, derived.meta.get("camera_frame_id", layout.LEFT_FRAME)
             path.parent.mkdir(parents=True, exist_ok=True)
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
                                  {"stage": "train.py predict", "model": model, "recording": rid,
-                                  "source": str(entry.processed if entry else "")}, overwrite=self.overwrite)
+                                  "source": str(entry.processed if entry else "")}, overwrite=self.overwrite,
+                                 camera_frame_id=camera)
             self.written.append(path)
             rank_zero_info(f"wrote {path} ({int(rows.sum())} frames)")

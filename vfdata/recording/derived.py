@@ -41,16 +41,18 @@ CLOUD_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
 # ---- messages ------------------------------------------------------------------------------------
 
 
-def object_tf(rotation: np.ndarray, origin_mm: np.ndarray, stamp_ns: int) -> TFMessage:
-    """left camera -> object frame: origin in metres, rotation whose columns are X, Y, Z."""
+def object_tf(rotation: np.ndarray, origin_mm: np.ndarray, stamp_ns: int,
+              camera_frame_id: str = layout.LEFT_FRAME) -> TFMessage:
+    """camera (the left view's, or an RGB-D recording's depth camera's) -> object frame: origin in metres,
+    rotation whose columns are X, Y, Z."""
     quat = tuple(float(q) for q in Rotation.from_matrix(np.asarray(rotation)).as_quat())
     origin_m = tuple(float(v) / MM_PER_M for v in origin_mm)
-    return TFMessage([TransformStamped(int(stamp_ns), layout.LEFT_FRAME, layout.OBJECT_FRAME, origin_m, quat)])
+    return TFMessage([TransformStamped(int(stamp_ns), camera_frame_id, layout.OBJECT_FRAME, origin_m, quat)])
 
 
-def mask_message(mask: np.ndarray, stamp_ns: int) -> CompressedImage:
+def mask_message(mask: np.ndarray, stamp_ns: int, camera_frame_id: str = layout.LEFT_FRAME) -> CompressedImage:
     _, data = cv2.imencode(".png", mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    return CompressedImage(int(stamp_ns), layout.LEFT_FRAME, "png", data.tobytes())
+    return CompressedImage(int(stamp_ns), camera_frame_id, "png", data.tobytes())
 
 
 def decode_mask(message: CompressedImage) -> np.ndarray:
@@ -58,10 +60,11 @@ def decode_mask(message: CompressedImage) -> np.ndarray:
     return cv2.imdecode(np.frombuffer(message.data, np.uint8), cv2.IMREAD_GRAYSCALE) > 127
 
 
-def depth_message(depth_mm: np.ndarray, stamp_ns: int) -> Image:
+def depth_message(depth_mm: np.ndarray, stamp_ns: int, camera_frame_id: str = layout.LEFT_FRAME) -> Image:
+    """Depth (H, W) mm, NaN unknown -> Image 16UC1 in mm, 0 unknown (REP 118)."""
     data = np.clip(np.rint(np.nan_to_num(depth_mm, nan=0.0, posinf=0.0, neginf=0.0)), 0, 65535).astype("<u2")
     h, w = data.shape
-    return Image(int(stamp_ns), layout.LEFT_FRAME, h, w, "16UC1", 0, 2 * w, data.tobytes())
+    return Image(int(stamp_ns), camera_frame_id, h, w, "16UC1", 0, 2 * w, data.tobytes())
 
 
 def decode_depth(message: Image, version: int = DERIVED_VERSION) -> np.ndarray:
@@ -158,19 +161,22 @@ class DerivedMeta:
 
 class DerivedWriter:
     """Writes a derived MCAP frame by frame (atomically, as `McapWriter`); `close(metadata)` adds the
-    metadata record, with `derived_version`, and publishes the file."""
+    metadata record, with `derived_version`, and publishes the file. Mask, depth and the object frame's
+    parent are in `camera_frame_id`: the left view's, or an RGB-D recording's depth camera's."""
 
-    def __init__(self, path: str | Path, overwrite: bool = False, inputs: tuple[str | Path, ...] = ()):
+    def __init__(self, path: str | Path, overwrite: bool = False, inputs: tuple[str | Path, ...] = (),
+                 camera_frame_id: str = layout.LEFT_FRAME):
         self.path = Path(path)
         self._writer = McapWriter(self.path, overwrite=overwrite, inputs=inputs)
+        self.camera_frame_id = camera_frame_id
         self.frames = 0
 
     def object_frame(self, frame: ObjectFrame, stamp_ns: int) -> None:
-        self._writer.write(layout.TF_STATIC, object_tf(frame.rotation, frame.origin, stamp_ns))
+        self._writer.write(layout.TF_STATIC, object_tf(frame.rotation, frame.origin, stamp_ns, self.camera_frame_id))
 
     def frame(self, stamp_ns: int, mask: np.ndarray, depth_mm: np.ndarray, cloud_object_mm: np.ndarray) -> None:
-        self._writer.write(layout.TISSUE_MASK, mask_message(mask, stamp_ns))
-        self._writer.write(layout.TISSUE_DEPTH, depth_message(depth_mm, stamp_ns))
+        self._writer.write(layout.TISSUE_MASK, mask_message(mask, stamp_ns, self.camera_frame_id))
+        self._writer.write(layout.TISSUE_DEPTH, depth_message(depth_mm, stamp_ns, self.camera_frame_id))
         self._writer.write(layout.TISSUE_POINTS, cloud_message(cloud_object_mm, stamp_ns))
         self.frames += 1
 
@@ -195,13 +201,14 @@ class DerivedWriter:
 
 
 def write_force_estimate(path: str | Path, times_ns: np.ndarray, force_object_n: np.ndarray, frame: ObjectFrame,
-                         metadata: dict[str, str], overwrite: bool = False) -> Path:
+                         metadata: dict[str, str], overwrite: bool = False,
+                         camera_frame_id: str = layout.LEFT_FRAME) -> Path:
     """`/force/estimate` (WrenchStamped in `tissue_object`, N, torque zeros: not estimated) and the
-    object frame on /tf_static."""
+    object frame on /tf_static (child of `camera_frame_id`)."""
     times_ns = np.asarray(times_ns, dtype=np.int64)
     with McapWriter(path, overwrite=overwrite) as writer:
         first = int(times_ns[0]) if len(times_ns) else 0
-        writer.write(layout.TF_STATIC, object_tf(frame.rotation, frame.origin, first))
+        writer.write(layout.TF_STATIC, object_tf(frame.rotation, frame.origin, first, camera_frame_id))
         for stamp, force in zip(times_ns, np.asarray(force_object_n, dtype=np.float64), strict=True):
             writer.write(layout.FORCE_ESTIMATE, WrenchStamped(int(stamp), layout.OBJECT_FRAME,
                                                               tuple(float(f) for f in force), (0.0, 0.0, 0.0)))
