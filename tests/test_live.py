@@ -147,7 +147,8 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     np.testing.assert_array_equal(rec_times, times)
     np.testing.assert_array_equal(rec_forces, np.array([w.force for w in wrenches]))
     with Recording.open(record) as rec:
-        assert {t: info.count for t, info in rec.topics.items()} == dict.fromkeys(LIVE_TOPICS, FRAMES)
+        stereo_topics = [t for t in LIVE_TOPICS if t not in (layout.DEPTH_IMAGE, layout.DEPTH_INFO)]  # RGB-D's
+        assert {t: info.count for t, info in rec.topics.items()} == dict.fromkeys(stereo_topics, FRAMES)
         _, image = next(rec.messages(layout.LEFT_IMAGE))
         _, info = next(rec.messages(layout.LEFT_INFO))
         assert cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (
@@ -324,3 +325,33 @@ def test_velocities_of_a_stream_that_skips_frames_stay_per_second():
         out = [stream.push(s, p, v) for s, p, v in zip(stamps[::2], points[::2], visible[::2], strict=True)]
         results[fps] = np.stack([r[1] for r in out[1:]] + [stream.flush()[1]])
     np.testing.assert_allclose(results[30.0], results[15.0], rtol=1e-6, atol=1e-7)
+
+
+def test_live_on_an_rgbd_recording_serves_its_depth_and_the_offline_forces(ckpt, tmp_path):
+    """An RGB-D recording replays as a live source: the sensor's depth replaces matching, the board
+    frame and the plane mask are used as offline, and the depth camera's image is what is served."""
+    from tests.rgbd_fixtures import make_rgbd
+    from vfdata.conversion.raw_rgbd import convert_rgbd_folder
+    from vfdata.processing import ProcessOptions
+
+    src = make_rgbd(tmp_path / "rec", n=FRAMES, holes=False)
+    recording = convert_rgbd_folder(src, tmp_path / "rec.mcap", options=ConvertOptions(progress=False, workers=1))
+    offline = predict.predict_recording(recording, ckpt, tmp_path / "offline", ProcessOptions(tracker="geometry"),
+                                        window=8, video=False, progress=False)
+    times, forces = read_force_estimate(offline.force_mcap)
+    record = tmp_path / "live.mcap"
+    code, client = _serve(_args(recording, ckpt, record=record, wait_for_client=20, speed=0),
+                          (layout.FORCE_ESTIMATE, layout.DEPTH_IMAGE))
+    assert code == 0 and client.closed_cleanly
+    wrenches = [decode("geometry_msgs/msg/WrenchStamped", p) for _, p in client.of(layout.FORCE_ESTIMATE)]
+    np.testing.assert_array_equal([w.stamp_ns for w in wrenches], times)
+    np.testing.assert_allclose(np.array([w.force for w in wrenches]), forces, rtol=1e-4, atol=1e-4)
+    assert len(client.of(layout.DEPTH_IMAGE)) == FRAMES
+    with Recording.open(record) as rec:
+        assert not rec.has(layout.LEFT_IMAGE)
+        _, depth = next(rec.messages(layout.DEPTH_IMAGE))
+        _, tf = next(rec.messages(layout.TF))
+        meta = rec.metadata_records[layout.DERIVED_METADATA]
+    assert (depth.encoding, depth.frame_id) == ("16UC1", layout.DEPTH_FRAME)  # mm, REP 118
+    assert tf.transforms[0].frame_id == layout.DEPTH_FRAME
+    assert meta["object_frame_kind"] == "board_plane" and meta["x_axis"].startswith("the image's right")

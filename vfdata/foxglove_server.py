@@ -29,6 +29,8 @@ DRAIN_S = 0.5
 LIVE_TOPICS: dict[str, str] = {
     layout.LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
     layout.LEFT_INFO: "sensor_msgs/msg/CameraInfo",
+    layout.DEPTH_IMAGE: "sensor_msgs/msg/Image",  # an RGB-D source's depth, instead of the left image
+    layout.DEPTH_INFO: "sensor_msgs/msg/CameraInfo",
     layout.TISSUE_MASK: layout.DERIVED_TOPICS[layout.TISSUE_MASK],
     layout.TISSUE_POINTS: layout.DERIVED_TOPICS[layout.TISSUE_POINTS],
     layout.TRACKING_POINTS: layout.DERIVED_TOPICS[layout.TRACKING_POINTS],

@@ -1,7 +1,7 @@
-"""Live stereo sources for `vfdata live`: rectified pairs, one at a time, each with the moment it
-arrived, produced by a thread of their own as a camera driver would.
+"""Live sources for `vfdata live`: rectified stereo pairs (or an RGB-D camera's depth frames), one
+at a time, each with the moment it arrived, produced by a thread of their own as a camera driver would.
 
-- `RecordingReplay`: a recording MCAP replayed at its own rate (`speed` 1.0; 0 = as fast as the
+- `RecordingReplay`: a recording MCAP (stereo or RGB-D) replayed at its own rate (`speed` 1.0; 0 = as fast as the
   consumer takes them). By default no frame is dropped: a consumer slower than the rate falls behind,
   and each frame's `arrival_s` is the moment the camera would have delivered it, so that lag shows in
   the latency instead of being hidden. `like_camera=True` keeps only the newest frame instead, as a
@@ -39,9 +39,10 @@ _END = object()
 class LiveFrame:
     index: int  # in the source's order (skipped frames of a camera leave gaps)
     stamp_ns: int
-    left: np.ndarray  # rectified BGR
-    right: np.ndarray
+    left: np.ndarray  # rectified BGR (RGB-D: the depth drawn as grey, vfdata.processing.depth_view)
+    right: np.ndarray | None  # None for RGB-D
     arrival_s: float  # time.perf_counter() when the camera delivered it (a replay: when it was due)
+    depth_mm: np.ndarray | None = None  # RGB-D: the sensor's depth (H, W) mm, NaN unknown
 
 
 def rectified_camera_info(camera: PinholeCamera, stamp_ns: int, baseline_mm: float = 0.0,
@@ -119,12 +120,17 @@ class RecordingReplay:
         if speed < 0:
             raise InputError(self.path, f"replay speed must be >= 0 (0: as fast as possible), not {speed}")
         self.recording = Recording.open(self.path)
-        for topic in (layout.LEFT_IMAGE, layout.RIGHT_IMAGE, layout.LEFT_INFO, layout.RIGHT_INFO):
+        self.is_rgbd = self.recording.is_rgbd
+        needed = (layout.DEPTH_IMAGE, layout.DEPTH_INFO) if self.is_rgbd else (
+            layout.LEFT_IMAGE, layout.RIGHT_IMAGE, layout.LEFT_INFO, layout.RIGHT_INFO)
+        for topic in needed:
             if not self.recording.has(topic):
                 self.recording.close()
-                raise InputError(self.path, f"source has no {topic}: not a stereo recording")
-        self.camera = self.recording.camera
-        self.baseline_mm = self.recording.stereo.baseline_mm
+                raise InputError(self.path, f"source has no {topic}: not a {'RGB-D' if self.is_rgbd else 'stereo'} "
+                                            "recording")
+        self.camera = self.recording.depth_camera if self.is_rgbd else self.recording.camera
+        self.baseline_mm = 0.0 if self.is_rgbd else self.recording.stereo.baseline_mm
+        self.camera_frame_id = layout.DEPTH_FRAME if self.is_rgbd else layout.LEFT_FRAME
         self.speed = float(speed)
         self.frames = self.recording.num_frames if max_frames is None else min(max_frames, self.recording.num_frames)
         if like_camera and self.speed == 0:
@@ -135,13 +141,26 @@ class RecordingReplay:
     def dropped(self) -> int:
         return self._producer.dropped
 
+    def decoded(self) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
+        """(stamp_ns, left, right, depth_mm) of each frame as processing sees them, decoded in the
+        caller's thread and without pacing (iterating the replay itself runs the camera-like thread)."""
+        if self.is_rgbd:
+            # here, not at the top: processing pulls in torch (the tracker); a stereo source does not need it
+            from vfdata.processing import depth_frames
+
+            for stamp_ns, view, depth_mm in depth_frames(self.recording, self.frames):
+                yield stamp_ns, view, None, depth_mm
+            return
+        for i in range(self.frames):
+            frame = self.recording.rectified_frame(i)
+            yield frame.stamp_ns, frame.left, frame.right, None
+
     def _produce(self, stop: threading.Event):
         times = self.recording.frame_times_ns
         started = time.perf_counter()
-        for i in range(self.frames):
+        for i, (stamp_ns, left, right, depth_mm) in enumerate(self.decoded()):
             if stop.is_set():
                 return
-            frame = self.recording.rectified_frame(i)
             if self.speed > 0:
                 due = started + (int(times[i]) - int(times[0])) / 1e9 / self.speed
                 wait = due - time.perf_counter()
@@ -149,7 +168,7 @@ class RecordingReplay:
                     time.sleep(wait)
             else:
                 due = time.perf_counter()
-            yield LiveFrame(i, frame.stamp_ns, frame.left, frame.right, due)
+            yield LiveFrame(i, stamp_ns, left, right, due, depth_mm)
 
     def __iter__(self) -> Iterator[LiveFrame]:
         return iter(self._producer)
@@ -173,6 +192,9 @@ def _open_capture(source: str) -> cv2.VideoCapture:
 
 class VideoStereo:
     """Two OpenCV sources (left, right) or one side-by-side source, rectified with `calibration`."""
+
+    is_rgbd = False
+    camera_frame_id = layout.LEFT_FRAME
 
     def __init__(self, left: str, right: str | None, calibration: str | Path, side_by_side: bool = False,
                  max_frames: int | None = None):

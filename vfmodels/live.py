@@ -1,7 +1,9 @@
-"""Live force estimation: stereo pairs in, one at a time, forces out.
+"""Live force estimation: stereo pairs (or RGB-D frames) in, one at a time, forces out.
 
 `StreamingForceEstimator.push(left, right, stamp_ns)` runs the per-frame engine (`vfdata.engine`:
-depth, mask, cloud, object frame, tracking) on one rectified pair and the model on its tracks.
+depth, mask, cloud, object frame, tracking) on one rectified pair and the model on its tracks; an
+RGB-D camera's frame comes as `push(view, None, stamp_ns, depth_mm)`, its depth replacing matching
+(with the engine options of `vfdata.processing.rgbd_options`).
 Velocities are central differences (as in training), so frame t's force is known once frame t+1 has
 arrived: `push` returns the estimate of the previous frame (one frame of latency, 33 ms at 30
 frames/s), None on the first call. Over a whole recording the forces equal `vfmodels.predict`'s.
@@ -37,6 +39,7 @@ from vfmodels.regressor import ForceRegressor
 # depth's CPU time ~4x with the same depth error inside the tissue (bench/study_live_depth.py,
 # docs/live.md); offline processing keeps the whole image.
 LIVE_DEPTH_ROI_MARGIN_PX = 24
+STAMP_HISTORY = 64  # frames whose median interval is a stream's period (a recording's: all of them)
 
 
 @dataclass
@@ -67,6 +70,7 @@ class StreamingForceModel:
         self.regressor, self.spec, self.window = regressor, spec, window
         self.object_frame = (np.asarray(rotation), np.asarray(origin_mm))
         self.recent: deque = deque(maxlen=3)  # (stamp, object-frame points, visible) of the last frames
+        self.stamps: deque = deque(maxlen=STAMP_HISTORY)  # the source's period, as a recording's median
         self.embeddings: deque = deque(maxlen=window or 1)
         self.state = None  # LSTM (h, c) when window is None
         self.keep: np.ndarray | None = None  # top/bottom subset, fixed on the first frame
@@ -76,6 +80,7 @@ class StreamingForceModel:
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
         points, visible = np.asarray(points_object_mm, dtype=np.float64), np.asarray(visible, dtype=bool)
         self.recent.append((int(stamp_ns), points, visible))
+        self.stamps.append(int(stamp_ns))
         if self.reference is None:
             self.reference = np.full_like(points, np.nan)
         first_seen = np.isnan(self.reference).any(axis=1) & visible & np.isfinite(points).all(axis=1)
@@ -97,6 +102,7 @@ class StreamingForceModel:
                 self.recent.popleft()
             result = self._estimate(1)
         self.recent.clear()
+        self.stamps.clear()
         self.embeddings.clear()
         self.state = None
         self.reference = None
@@ -107,10 +113,14 @@ class StreamingForceModel:
         recent = list(self.recent)
         points = mirror_y(np.stack([p[1] for p in recent]), self.side)
         visible = np.stack([p[2] for p in recent])
-        fps = skipped_frame_rate(self.spec.fps or 30.0, np.array([p[0] for p in recent]))
+        # Velocities as over a whole recording: one-sided across a dropped frame (an interval over
+        # GAP_FACTOR periods: a Kinect's, 70 ms of 30), at the rate of the source's usual period.
+        history = np.array(self.stamps, dtype=np.int64)
+        fps = skipped_frame_rate(self.spec.fps or 30.0, history)
+        period_ns = float(np.median(np.diff(history))) if len(history) > 1 else None
         reference = mirror_y(self.reference, self.side)
-        tokens, valid = point_tokens(self.spec, points, visible, None, self.object_frame, self.keep, fps=fps,
-                                     reference_mm=reference)
+        tokens, valid = point_tokens(self.spec, points, visible, np.array([p[0] for p in recent]), self.object_frame,
+                                     self.keep, fps=fps, reference_mm=reference, period_ns=period_ns)
         model, device = self.regressor.model, model_device(self.regressor)
         x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None].to(device))
         z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None].to(device))[0]  # (1, D)
@@ -170,16 +180,19 @@ class StreamingForceEstimator:
         self.engine.clock.add("force", t)
         return estimate
 
-    def push(self, left: np.ndarray, right: np.ndarray, stamp_ns: int) -> ForceEstimate | None:
+    def push(self, left: np.ndarray, right: np.ndarray | None, stamp_ns: int,
+             depth_mm: np.ndarray | None = None) -> ForceEstimate | None:
+        """One frame: a rectified stereo pair, or an RGB-D camera's `depth_mm` (H, W) mm with its view
+        as `left` (`vfdata.processing.depth_view`) and no `right`."""
         t0 = time.perf_counter()
         first = self.frames == 0
         self.frames += 1
         if not self.pipelined:
-            result = self._track(self.engine.image_stages(left, right, first), left, stamp_ns)
+            result = self._track(self.engine.image_stages(left, right, first, depth_mm), left, stamp_ns)
         else:
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="vf-image-stages")
-            future = self._pool.submit(self.engine.image_stages, left, right, first)
+            future = self._pool.submit(self.engine.image_stages, left, right, first, depth_mm)
             result = self._track(*self._pending) if self._pending is not None else None
             self._pending = (future.result(), left, stamp_ns)
         return None if result is None else ForceEstimate(result[0], result[1], time.perf_counter() - t0)

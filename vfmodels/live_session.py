@@ -1,8 +1,9 @@
-"""A live session (`vfdata live`): a stereo source (`vfdata.sources`) through the streaming estimator
-(`vfmodels.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
+"""A live session (`vfdata live`): a stereo or RGB-D source (`vfdata.sources`) through the streaming
+estimator (`vfmodels.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
 
 Per tracked frame it serves the left image (`/stereo/left/image/compressed`, JPEG, with its rectified
-`/stereo/left/camera_info`), `/tissue/mask`, `/tissue/points` and `/tracking/points` (object frame, m),
+`/stereo/left/camera_info`; an RGB-D source: `/camera/depth/image`, 16UC1 mm, and its camera info, in
+the depth camera's frame), `/tissue/mask`, `/tissue/points` and `/tracking/points` (object frame, m),
 the object frame on `/tf`, and the force of each frame on `/force/estimate` as soon as it is known
 (one frame later: its velocity is a central difference; two with `pipelined`). The force goes first,
 the pictures after it, so drawing them never delays a force.
@@ -22,9 +23,9 @@ import numpy as np
 
 from vfdata.engine import FrameResult
 from vfdata.foxglove_server import FoxgloveServer
-from vfdata.recon.object_frame import ObjectFrame
+from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import layout
-from vfdata.recording.derived import DERIVED_VERSION, cloud_message, mask_message, object_tf
+from vfdata.recording.derived import DERIVED_VERSION, cloud_message, depth_message, mask_message, object_tf
 from vfdata.recording.messages import CompressedImage, WrenchStamped
 from vfdata.sources import LiveFrame, rectified_camera_info
 from vfmodels.live import ForceEstimate, StreamingForceEstimator
@@ -83,7 +84,7 @@ class LiveSession:
                     self._arrivals[self._last.stamp_ns] = frame.arrival_s
                 self._last = frame
                 self.stats.frames += 1
-                estimate = self.estimator.push(frame.left, frame.right, frame.stamp_ns)
+                estimate = self.estimator.push(frame.left, frame.right, frame.stamp_ns, frame.depth_mm)
                 self._send(estimate)
                 if self.stop.is_set():
                     break
@@ -112,13 +113,20 @@ class LiveSession:
 
     def _send_frame(self, result: FrameResult) -> None:
         server, stamp, frame = self.server, result.stamp_ns, self.object_frame
-        server.publish(layout.TF, object_tf(frame.rotation, frame.origin, stamp))
-        if server.wants(layout.LEFT_IMAGE):
-            ok, jpeg = cv2.imencode(".jpg", result.left, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-            server.publish(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", jpeg.tobytes()))
-        server.publish(layout.LEFT_INFO, rectified_camera_info(self.estimator.camera, stamp))
+        camera_frame = self.source.camera_frame_id
+        server.publish(layout.TF, object_tf(frame.rotation, frame.origin, stamp, camera_frame))
+        if self.source.is_rgbd:  # the sensor's depth as the drivers publish it: 16UC1 mm (REP 118)
+            if server.wants(layout.DEPTH_IMAGE):
+                server.publish(layout.DEPTH_IMAGE, depth_message(result.depth_mm, stamp, camera_frame))
+            server.publish(layout.DEPTH_INFO, rectified_camera_info(self.estimator.camera, stamp,
+                                                                    frame_id=camera_frame))
+        else:
+            if server.wants(layout.LEFT_IMAGE):
+                ok, jpeg = cv2.imencode(".jpg", result.left, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                server.publish(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", jpeg.tobytes()))
+            server.publish(layout.LEFT_INFO, rectified_camera_info(self.estimator.camera, stamp))
         if server.wants(layout.TISSUE_MASK):
-            server.publish(layout.TISSUE_MASK, mask_message(result.mask, stamp))
+            server.publish(layout.TISSUE_MASK, mask_message(result.mask, stamp, camera_frame))
         if server.wants(layout.TISSUE_POINTS):
             server.publish(layout.TISSUE_POINTS, cloud_message(frame.to_object(result.cloud_mm), stamp))
         if result.points_mm is not None and server.wants(layout.TRACKING_POINTS):
@@ -133,4 +141,7 @@ class LiveSession:
         if frame is not None:
             meta["object_frame"] = json.dumps(frame.to_dict())
             meta["up_known"] = str(self.estimator.up is not None).lower()
+            meta["object_frame_kind"] = frame.diagnostics.get("kind", "tissue")
+            meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.estimator.up is not None)
+        meta["camera_frame_id"] = self.source.camera_frame_id
         return meta

@@ -23,14 +23,16 @@ def frame_rate(times_ns: np.ndarray) -> float:
     return 1e9 / float(np.median(dt)) if len(dt) else DEFAULT_FPS
 
 
-def segments(times_ns: np.ndarray, gap_factor: float = GAP_FACTOR) -> list[tuple[int, int]]:
+def segments(times_ns: np.ndarray, gap_factor: float = GAP_FACTOR,
+             period_ns: float | None = None) -> list[tuple[int, int]]:
     """Gap-free runs [start, stop) of frame indices: a new run starts after any interval longer than
-    `gap_factor` times the median interval."""
+    `gap_factor` times the nominal period, `period_ns` (default: the median interval of these times;
+    a stream that holds only a few frames passes its longer history's)."""
     times = np.asarray(times_ns, dtype=np.int64)
     if len(times) < 2:
         return [(0, len(times))] if len(times) else []
     dt = np.diff(times)
-    breaks = np.flatnonzero(dt > gap_factor * np.median(dt)) + 1
+    breaks = np.flatnonzero(dt > gap_factor * (np.median(dt) if period_ns is None else period_ns)) + 1
     bounds = [0, *breaks.tolist(), len(times)]
     return list(zip(bounds[:-1], bounds[1:], strict=True))
 
@@ -232,13 +234,15 @@ def recording_side(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.nda
 
 def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
                  object_frame: tuple[np.ndarray, np.ndarray] | None = None, keep: np.ndarray | None = None,
-                 fps: float | None = None, reference_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 fps: float | None = None, reference_mm: np.ndarray | None = None,
+                 period_ns: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tracks (F, N, 3) in the object frame (mm, already mirrored by the caller when it should be) +
     visibility (F, N) -> tokens (F, N', C) float32 and valid (F, N') as `spec` says. `times_ns` cuts
     velocities at gaps (None: one gap-free run); the camera frame needs `object_frame` (rotation (3, 3)
     with the object axes as columns, origin (3,) mm); `keep` fixes the top/bottom subset (default:
     chosen on the first frame); `reference_mm` (N, 3) the positions displacements start from (default:
-    each point's first valid position in these frames; a stream passes the recording's first frame)."""
+    each point's first valid position in these frames; a stream passes the recording's first frame);
+    `period_ns` the nominal frame interval gaps are judged against (`segments`)."""
     points = np.asarray(points_object_mm, dtype=np.float64)
     visible = np.asarray(visible, dtype=bool)
     reference = None if reference_mm is None else np.asarray(reference_mm, dtype=np.float64)
@@ -252,7 +256,7 @@ def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
         rotation, origin = object_frame
         points = points @ np.asarray(rotation).T + np.asarray(origin)
         reference = None if reference is None else reference @ np.asarray(rotation).T + np.asarray(origin)
-    runs = segments(times_ns) if times_ns is not None else [(0, len(points))]
+    runs = segments(times_ns, period_ns=period_ns) if times_ns is not None else [(0, len(points))]
     rate = fps or spec.fps or (frame_rate(times_ns) if times_ns is not None else DEFAULT_FPS)
     return point_features(points, visible, runs, rate, spec.features, reference)
 

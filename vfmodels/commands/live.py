@@ -20,10 +20,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "live", help="estimate forces live and serve them to Foxglove (WebSocket), optionally recording them",
         description="Runs the streaming estimator on SOURCE and serves the left image, tissue mask, tracked points, "
                     "tissue cloud, the object frame (/tf) and /force/estimate over the Foxglove WebSocket protocol, "
-                    "with the topics and ROS 2 schemas of the files. SOURCE is a recording MCAP (replayed at its own "
-                    "rate) or an OpenCV video source (device index, file or stream URL) with --right or "
-                    "--side-by-side and --calibration. Needs the 'live' extra (foxglove-sdk). Ctrl-C stops it "
-                    "cleanly (the --record file is then written).")
+                    "with the topics and ROS 2 schemas of the files. SOURCE is a recording MCAP (stereo or RGB-D, "
+                    "replayed at its own rate) or an OpenCV video source (device index, file or stream URL) with "
+                    "--right or --side-by-side and --calibration. Needs the 'live' extra (foxglove-sdk). Ctrl-C stops "
+                    "it cleanly (the --record file is then written).")
     p.add_argument("source", help="recording .mcap, or the left (or side-by-side) video source: device index, "
                                   "video file or stream URL")
     p.add_argument("--ckpt", type=Path, required=True,
@@ -97,6 +97,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
 
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
+    from vfdata.processing import rgbd_options
     from vfdata.recording import layout
     from vfmodels.commands.predict import checkpoint_file
     from vfmodels.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
@@ -114,9 +115,11 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     source, prompt, up = open_source(args)
     server = None
     try:
-        estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt,
-                                            EngineOptions(depth=args.depth, segment=args.segment, tracker=tracker,
-                                                          depth_roi_margin_px=roi, tracker_options=tracker_options),
+        options = EngineOptions(depth=args.depth, segment=args.segment, tracker=tracker, depth_roi_margin_px=roi,
+                                tracker_options=tracker_options)
+        if source.is_rgbd:  # the sensor's depth, the board's plane and frame, as `vfdata process` does
+            options = rgbd_options(options, source.path)
+        estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt, options,
                                             up=up, device=device,
                                             window=None if args.window == 0 else args.window,
                                             pipelined=args.pipelined)

@@ -98,9 +98,9 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
 
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
-    from vfdata.processing import camera_up, recording_prompt
-    from vfdata.recording import Recording
+    from vfdata.processing import camera_frame_id, camera_up, recording_prompt, rgbd_options
     from vfdata.recording.derived import write_force_estimate
+    from vfdata.sources import RecordingReplay
     from vfmodels.live import StreamingForceEstimator
 
     out = Path(args.out or args.recording.parent)
@@ -108,27 +108,36 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     path = out / f"{args.recording.name.removesuffix('.mcap')}.force.mcap"
     if path.exists() and not args.overwrite:
         raise OutputExistsError(path)
-    with Recording.open(args.recording) as rec:
-        estimator = StreamingForceEstimator(args.ckpt, rec.camera, rec.stereo.baseline_mm,
-                                            recording_prompt(rec, args.recording, args.prompt),
-                                            EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
-                                                          tracker_options=args.tracker_options), up=camera_up(rec),
-                                            window=window, pipelined=args.pipelined, device=args.device)
-        n = rec.num_frames if args.max_frames is None else min(args.max_frames, rec.num_frames)
+    source = RecordingReplay(args.recording, speed=0.0, max_frames=args.max_frames)
+    try:
+        rec = source.recording
+        options = EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
+                                tracker_options=args.tracker_options)
+        if source.is_rgbd:
+            options = rgbd_options(options, args.recording)
+        estimator = StreamingForceEstimator(args.ckpt, source.camera, source.baseline_mm,
+                                            recording_prompt(rec, args.recording, args.prompt), options,
+                                            up=camera_up(rec), window=window, pipelined=args.pipelined,
+                                            device=args.device)
+        n, camera_frame = source.frames, camera_frame_id(rec)
         estimates, latencies = [], []
-        for i in tqdm(range(n), desc="stream", unit="frame", disable=args.quiet):
-            frame = rec.rectified_frame(i)  # decoding stands in for the camera driver: not timed
+        # decoding stands in for the camera driver: in this thread, before the clock starts
+        for stamp_ns, left, right, depth_mm in tqdm(source.decoded(), total=n, desc="stream", unit="frame",
+                                                    disable=args.quiet):
             started = time.perf_counter()
-            result = estimator.push(frame.left, frame.right, frame.stamp_ns)
+            result = estimator.push(left, right, stamp_ns, depth_mm)
             latencies.append(time.perf_counter() - started)
             if result is not None:
                 estimates.append(result)
         object_frame = estimator.frame
         estimates += estimator.flush()
         estimator.close()
+    finally:
+        source.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
-                         object_frame, {"stage": "predict --stream", "window": str(window)}, overwrite=args.overwrite)
+                         object_frame, {"stage": "predict --stream", "window": str(window)}, overwrite=args.overwrite,
+                         camera_frame_id=camera_frame)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
     per_stage_cpu = {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}
     delay = 2 if args.pipelined else 1
