@@ -299,10 +299,14 @@ def test_the_foxglove_layout_in_docs_is_the_generated_one_and_names_served_topic
 
     from vfdata.foxglove_layout import layout_json
 
-    text = (Path(__file__).resolve().parents[1] / "docs" / "foxglove_layout.json").read_text()
-    assert text == layout_json()  # regenerate: python -m vfdata.foxglove_layout > docs/foxglove_layout.json
-    named = set(re.findall(r'"(/[a-z_/]+)', text))
-    assert named and {t.split(".")[0] for t in named} <= set(LIVE_TOPICS)
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    for name, rgbd in (("foxglove_layout.json", False), ("foxglove_layout_rgbd.json", True)):
+        text = (docs / name).read_text()
+        # regenerate: python -m vfdata.foxglove_layout [--rgbd] > docs/foxglove_layout[_rgbd].json
+        assert text == layout_json(rgbd), name
+        named = set(re.findall(r'"(/[a-z_/]+)', text))
+        assert named and {t.split(".")[0] for t in named} <= set(LIVE_TOPICS)
+        assert (layout.DEPTH_IMAGE in named) == rgbd and (layout.LEFT_IMAGE in named) != rgbd
 
 
 def test_velocities_of_a_stream_that_skips_frames_stay_per_second():

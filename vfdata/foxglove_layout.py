@@ -4,6 +4,7 @@ frame, and Fx, Fy, Fz of `/force/estimate` over time. The same layout serves `vf
 files (a recording opened with its derived and force files), since both have the same topics.
 
     python -m vfdata.foxglove_layout > docs/foxglove_layout.json      # Foxglove: Layouts -> Import
+    python -m vfdata.foxglove_layout --rgbd > docs/foxglove_layout_rgbd.json   # the depth image instead
 
 Built with the `foxglove-sdk` package's layout types (the extra `live`)."""
 
@@ -16,14 +17,17 @@ from vfdata.foxglove_server import import_foxglove
 from vfdata.recording import layout
 
 
-def layout_json() -> str:
-    """The layout as Foxglove imports it (indented JSON)."""
+def layout_json(rgbd: bool = False) -> str:
+    """The layout as Foxglove imports it (indented JSON); `rgbd`: an RGB-D recording's, whose image
+    panel shows the depth camera's image (`/camera/depth/image`) instead of the left view."""
     import_foxglove()
     import foxglove.layouts as fl
 
-    image = fl.ImagePanel(title="left image, tissue mask, tracked points", config=fl.ImageConfig(
+    view, info, name = ((layout.DEPTH_IMAGE, layout.DEPTH_INFO, "depth image") if rgbd else
+                        (layout.LEFT_IMAGE, layout.LEFT_INFO, "left image"))
+    image = fl.ImagePanel(title=f"{name}, tissue mask, tracked points", config=fl.ImageConfig(
         image_mode=fl.ImageModeConfig(
-            image_topic=layout.LEFT_IMAGE, calibration_topic=layout.LEFT_INFO,
+            image_topic=view, calibration_topic=info,
             overlay_topics=[fl.ImageOverlayTopicConfig(id="mask", topic=layout.TISSUE_MASK, visible=True,
                                                         opacity=0.35, pixel_alpha_mode="none")]),
         topics={layout.TRACKING_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=6.0,
@@ -49,4 +53,4 @@ def layout_json() -> str:
 
 
 if __name__ == "__main__":
-    sys.stdout.write(layout_json())
+    sys.stdout.write(layout_json(rgbd="--rgbd" in sys.argv[1:]))
