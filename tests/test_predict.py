@@ -408,11 +408,20 @@ def test_predict_on_an_rgbd_recording_says_its_board_frame(tmp_path):
     src = make_rgbd(tmp_path / "rec", n=6, holes=False)
     recording = convert_rgbd_folder(src, tmp_path / "rec.mcap", options=ConvertOptions(progress=False, workers=1))
     ckpt = _save_checkpoint(_regressor(), tmp_path / "m.ckpt", {"spec": {"input": "tracks", "fps": 30.0}})
-    result = predict.predict_recording(recording, ckpt, tmp_path / "out", ProcessOptions(num_points=32), window=4,
+    result = predict.predict_recording(recording, ckpt, tmp_path / "out", ProcessOptions(), window=4,
                                        video=False, progress=False)
     assert not result.up_known and result.x_axis.startswith("the image's right")
-    with Recording.open(result.force_mcap) as rec:
-        assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == result.x_axis
-        _, tf = next(rec.messages(layout.TF_STATIC))  # the object frame hangs off the depth camera
-        assert tf.transforms[0].frame_id == layout.DEPTH_FRAME
-    assert len(read_force_estimate(result.force_mcap)[0]) == 6
+    # frame by frame (`--stream`, what `vfdata live` runs): the same forces, said the same way
+    from vfdata.cli import main
+
+    assert main(["predict", str(recording), "--ckpt", str(ckpt), "--out", str(tmp_path / "stream"), "--stream",
+                 "--window", "4", "--quiet"]) == 0
+    offline, stream = result.force_mcap, tmp_path / "stream" / "rec.force.mcap"
+    for path in (offline, stream):
+        with Recording.open(path) as rec:
+            assert rec.metadata_records[layout.DERIVED_METADATA]["x_axis"] == result.x_axis
+            _, tf = next(rec.messages(layout.TF_STATIC))  # the object frame hangs off the depth camera
+            assert tf.transforms[0].frame_id == layout.DEPTH_FRAME
+    (times, forces), (stream_times, stream_forces) = read_force_estimate(offline), read_force_estimate(stream)
+    assert len(times) == 6 and np.array_equal(times, stream_times)
+    np.testing.assert_allclose(stream_forces, forces, rtol=1e-4, atol=1e-4)

@@ -99,6 +99,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
     from vfdata.processing import camera_frame_id, camera_up, recording_prompt, rgbd_options
+    from vfdata.recon.object_frame import x_axis_meaning
     from vfdata.recording.derived import write_force_estimate
     from vfdata.sources import RecordingReplay
     from vfmodels.live import StreamingForceEstimator
@@ -130,14 +131,17 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             if result is not None:
                 estimates.append(result)
         object_frame = estimator.frame
+        kind = object_frame.diagnostics.get("kind", "tissue")
+        x_axis = x_axis_meaning(kind, estimator.up is not None)
         estimates += estimator.flush()
         estimator.close()
     finally:
         source.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
-                         object_frame, {"stage": "predict --stream", "window": str(window)}, overwrite=args.overwrite,
-                         camera_frame_id=camera_frame)
+                         object_frame, {"stage": "predict --stream", "window": str(window), "x_axis": x_axis,
+                                        "object_frame_kind": kind, "camera_frame_id": camera_frame},
+                         overwrite=args.overwrite, camera_frame_id=camera_frame)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
     per_stage_cpu = {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}
     delay = 2 if args.pipelined else 1
