@@ -1,8 +1,8 @@
 """Live sources for `vfdata live`: rectified stereo pairs (or an RGB-D camera's depth frames), one
 at a time, each with the moment it arrived, produced by a thread of their own as a camera driver would.
 
-- `RecordingReplay`: a recording MCAP (stereo or RGB-D) replayed at its own rate (`speed` 1.0; 0 = as fast as the
-  consumer takes them). By default no frame is dropped: a consumer slower than the rate falls behind,
+- `RecordingReplay`: a recording MCAP (stereo or RGB-D) replayed at its own rate (`speed` 1.0; 0 = as
+  fast as the consumer takes them). By default no frame is dropped: a consumer slower than the rate falls behind,
   and each frame's `arrival_s` is the moment the camera would have delivered it, so that lag shows in
   the latency instead of being hidden. `like_camera=True` keeps only the newest frame instead, as a
   camera does: a slower consumer skips frames (`dropped`) and its latency stays that of one frame.
