@@ -23,9 +23,10 @@ from test_predict import _regressor, _save_checkpoint  # noqa: E402
 
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder  # noqa: E402
 from vfdata.errors import InputError, OutputError, OutputExistsError  # noqa: E402
-from vfdata.foxglove_server import LIVE_TOPICS, FoxgloveServer  # noqa: E402
+from vfdata.foxglove_server import FoxgloveServer  # noqa: E402
 from vfdata.recording import Recording, layout  # noqa: E402
 from vfdata.recording.derived import DerivedRecording, read_force_estimate  # noqa: E402
+from vfdata.recording.inspect import check_file  # noqa: E402
 from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
 from vfdata.sim import synthesize  # noqa: E402
 from vfmodels import predict  # noqa: E402
@@ -130,7 +131,7 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     channel = client.advertised[layout.FORCE_ESTIMATE]
     assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == \
         ("cdr", "geometry_msgs/msg/WrenchStamped", "ros2msg")
-    assert set(client.advertised) == set(LIVE_TOPICS)
+    assert set(client.advertised) == set(layout.LIVE_TOPICS)
 
     received = client.of(layout.FORCE_ESTIMATE)
     assert len(received) == FRAMES
@@ -146,8 +147,9 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     rec_times, rec_forces = read_force_estimate(record)
     np.testing.assert_array_equal(rec_times, times)
     np.testing.assert_array_equal(rec_forces, np.array([w.force for w in wrenches]))
+    assert check_file(record) == []  # `vfdata check` knows a live record's topics
     with Recording.open(record) as rec:
-        stereo_topics = [t for t in LIVE_TOPICS if t not in (layout.DEPTH_IMAGE, layout.DEPTH_INFO)]  # RGB-D's
+        stereo_topics = [t for t in layout.LIVE_TOPICS if t not in (layout.DEPTH_IMAGE, layout.DEPTH_INFO)]  # RGB-D's
         assert {t: info.count for t, info in rec.topics.items()} == dict.fromkeys(stereo_topics, FRAMES)
         _, image = next(rec.messages(layout.LEFT_IMAGE))
         _, info = next(rec.messages(layout.LEFT_INFO))
@@ -305,7 +307,7 @@ def test_the_foxglove_layout_in_docs_is_the_generated_one_and_names_served_topic
         # regenerate: python -m vfdata.foxglove_layout [--rgbd] > docs/foxglove_layout[_rgbd].json
         assert text == layout_json(rgbd), name
         named = set(re.findall(r'"(/[a-z_/]+)', text))
-        assert named and {t.split(".")[0] for t in named} <= set(LIVE_TOPICS)
+        assert named and {t.split(".")[0] for t in named} <= set(layout.LIVE_TOPICS)
         assert (layout.DEPTH_IMAGE in named) == rgbd and (layout.LEFT_IMAGE in named) != rgbd
 
 
@@ -351,6 +353,7 @@ def test_live_on_an_rgbd_recording_serves_its_depth_and_the_offline_forces(ckpt,
     np.testing.assert_array_equal([w.stamp_ns for w in wrenches], times)
     np.testing.assert_allclose(np.array([w.force for w in wrenches]), forces, rtol=1e-4, atol=1e-4)
     assert len(client.of(layout.DEPTH_IMAGE)) == FRAMES
+    assert check_file(record) == []  # `vfdata check` knows a live record's topics
     with Recording.open(record) as rec:
         assert not rec.has(layout.LEFT_IMAGE)
         _, depth = next(rec.messages(layout.DEPTH_IMAGE))

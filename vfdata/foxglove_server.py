@@ -26,19 +26,6 @@ from vfdata.recording.writer import McapWriter
 # gets this long to receive the last messages (the flush's forces) before the connection closes.
 DRAIN_S = 0.5
 
-LIVE_TOPICS: dict[str, str] = {
-    layout.LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
-    layout.LEFT_INFO: "sensor_msgs/msg/CameraInfo",
-    layout.DEPTH_IMAGE: "sensor_msgs/msg/Image",  # an RGB-D source's depth, instead of the left image
-    layout.DEPTH_INFO: "sensor_msgs/msg/CameraInfo",
-    layout.TISSUE_MASK: layout.DERIVED_TOPICS[layout.TISSUE_MASK],
-    layout.TISSUE_POINTS: layout.DERIVED_TOPICS[layout.TISSUE_POINTS],
-    layout.TRACKING_POINTS: layout.DERIVED_TOPICS[layout.TRACKING_POINTS],
-    layout.FORCE_ESTIMATE: layout.DERIVED_TOPICS[layout.FORCE_ESTIMATE],
-    layout.TF: "tf2_msgs/msg/TFMessage",
-}
-
-
 def import_foxglove():
     try:  # the optional extra 'live', imported when a server starts
         import foxglove
@@ -68,7 +55,7 @@ class _Subscriptions:
 
 class FoxgloveServer:
     """A Foxglove WebSocket server on `host:port` (port 0: any free port, see `.port`) advertising
-    `LIVE_TOPICS`; `record`: also write what is served to this MCAP."""
+    `layout.LIVE_TOPICS`; `record`: also write what is served to this MCAP."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, record: str | Path | None = None,
                  overwrite: bool = False, name: str = "visionforce"):
@@ -89,8 +76,8 @@ class FoxgloveServer:
             topic: foxglove.Channel(topic, message_encoding=layout.MESSAGE_ENCODING, context=self.context,
                                     schema=foxglove.Schema(name=msgtype, encoding=layout.SCHEMA_ENCODING,
                                                            data=schema_text(msgtype).encode()))
-            for topic, msgtype in LIVE_TOPICS.items()}
-        self.published = dict.fromkeys(LIVE_TOPICS, 0)
+            for topic, msgtype in layout.LIVE_TOPICS.items()}
+        self.published = dict.fromkeys(layout.LIVE_TOPICS, 0)
         self._closed = False
 
     @property
@@ -112,7 +99,7 @@ class FoxgloveServer:
         payload = message.encode()
         self.channels[topic].log(payload, log_time=stamp)
         if self.recorder is not None:
-            self.recorder.write_payload(topic, LIVE_TOPICS[topic], stamp, payload)
+            self.recorder.write_payload(topic, layout.LIVE_TOPICS[topic], stamp, payload)
         self.published[topic] += 1
 
     def wait_for_subscriber(self, topic: str, timeout_s: float) -> bool:

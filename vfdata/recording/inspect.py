@@ -113,7 +113,9 @@ def check_file(path: str | Path) -> list[str]:
             problems.append(f"{channel.topic}: schema encoding '{channel.schema_encoding}', expected ros2msg")
     is_recording = layout.RECORDING_METADATA in rec.metadata_records
     rgbd = is_recording and rec.is_rgbd
-    expected = (layout.RGBD_TOPICS if rgbd else layout.RECORDING_TOPICS) if is_recording else layout.DERIVED_TOPICS
+    live = not is_recording and rec.metadata_records.get(layout.DERIVED_METADATA, {}).get("stage") == "live"
+    expected = ((layout.RGBD_TOPICS if rgbd else layout.RECORDING_TOPICS) if is_recording else
+                layout.LIVE_TOPICS if live else layout.DERIVED_TOPICS)
     if not is_recording and layout.DERIVED_METADATA not in rec.metadata_records:
         problems.append(f"no '{layout.RECORDING_METADATA}' or '{layout.DERIVED_METADATA}' metadata record")
     for topic, info in rec.topics.items():

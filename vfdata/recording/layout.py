@@ -70,6 +70,21 @@ DERIVED_TOPICS: dict[str, str] = {
     TF_STATIC: "tf2_msgs/msg/TFMessage",
 }
 
+# What `vfdata live` serves (and its --record file holds, stage 'live'): the view it saw (the left
+# image, or an RGB-D source's depth image) with its camera info, the derived topics, and the object
+# frame on /tf with every frame (a client that connects later never sees a message sent once).
+LIVE_TOPICS: dict[str, str] = {
+    LEFT_IMAGE: "sensor_msgs/msg/CompressedImage",
+    LEFT_INFO: "sensor_msgs/msg/CameraInfo",
+    DEPTH_IMAGE: "sensor_msgs/msg/Image",
+    DEPTH_INFO: "sensor_msgs/msg/CameraInfo",
+    TISSUE_MASK: DERIVED_TOPICS[TISSUE_MASK],
+    TISSUE_POINTS: DERIVED_TOPICS[TISSUE_POINTS],
+    TRACKING_POINTS: DERIVED_TOPICS[TRACKING_POINTS],
+    FORCE_ESTIMATE: DERIVED_TOPICS[FORCE_ESTIMATE],
+    TF: "tf2_msgs/msg/TFMessage",
+}
+
 # Frame ids (tf tree: world -> left camera (ECM pose), left -> right, left -> object).
 WORLD_FRAME = "world"
 LEFT_FRAME = "stereo_left_optical"
