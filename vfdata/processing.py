@@ -281,7 +281,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "object_frame": json.dumps(_jsonable(engine.frame.to_dict())),
         # tissue: the tube's object frame; board_plane: Z = the board's normal (up), origin under the
         # tissue's centroid; camera: the camera frame itself (docs/reconstruction.md)
-        "object_frame_kind": engine.frame.diagnostics.get("kind", "tissue"),
+        "object_frame_kind": engine.frame.kind,
         "camera_frame_id": camera_frame_id(rec),
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         # the full cloud's axis vs its frontal part's (object_frame.cross_checked_frame)

@@ -141,7 +141,7 @@ class LiveSession:
         if frame is not None:
             meta["object_frame"] = json.dumps(frame.to_dict())
             meta["up_known"] = str(self.estimator.up is not None).lower()
-            meta["object_frame_kind"] = frame.diagnostics.get("kind", "tissue")
+            meta["object_frame_kind"] = frame.kind
             meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.estimator.up is not None)
         meta["camera_frame_id"] = self.source.camera_frame_id
         return meta

@@ -44,6 +44,11 @@ class ObjectFrame:
     diagnostics: dict = field(default_factory=dict, compare=False)
 
     @property
+    def kind(self) -> str:
+        """'tissue' (the tube's frame, above), 'board_plane' or 'camera' (vfdata.recon.plane)."""
+        return self.diagnostics.get("kind", "tissue")
+
+    @property
     def z_axis(self) -> np.ndarray:
         return self.rotation[:, 2]
 
@@ -81,8 +86,7 @@ class ObjectFrame:
                    bool(values["up_known"]), float(values["score_deg"]))
 
 
-# What X is, by the frame's kind (`diagnostics["kind"]`, a derived MCAP's `object_frame_kind`); the
-# text before ':' is the short form (plot titles). Flat tissue frames: vfdata.recon.plane.
+# What X is, by the frame's kind (a derived MCAP's `object_frame_kind`); before ':' the short form.
 _X_AXIS = {"board_plane": "the image's right: the camera's x made perpendicular to the board's normal Z",
            "camera": "the image's right: the camera frame itself"}
 

@@ -49,7 +49,7 @@ def first_frame_preview(image_bgr: np.ndarray, mask: np.ndarray, camera: Pinhole
             cv2.arrowedLine(out, origin, tip, colour, 2, cv2.LINE_AA, tipLength=0.15)
             draw_label(out, name, (tip[0] + 4, tip[1] + 4), colour)
         cv2.circle(out, origin, 4, (255, 255, 255), -1, cv2.LINE_AA)
-    kind = frame.diagnostics.get("kind", "tissue")
+    kind = frame.kind
     found = f"search score {frame.score_deg:.1f} deg, " if kind == "tissue" else f"{kind}, "
     draw_label(out, f"mask {int(inside.sum())} px; object frame: {found}X {x_axis_meaning(kind, frame.up_known)}",
                (8, 20))

@@ -131,7 +131,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             if result is not None:
                 estimates.append(result)
         object_frame = estimator.frame
-        kind = object_frame.diagnostics.get("kind", "tissue")
+        kind = object_frame.kind
         x_axis = x_axis_meaning(kind, estimator.up is not None)
         estimates += estimator.flush()
         estimator.close()
