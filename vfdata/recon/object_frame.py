@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from vfdata.errors import InputError
 
@@ -312,15 +313,7 @@ def up_in_camera(quat_xyzw: np.ndarray, world_up: tuple[float, float, float] = (
         raise InputError(
             "ECM pose", f"orientation quaternion {q.tolist()} is not a valid (x, y, z, w) rotation"
         )
-    x, y, z, w = q / norm
-    rot = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    up = rot.T @ np.asarray(world_up, dtype=np.float64)
+    up = Rotation.from_quat(q / norm).as_matrix().T @ np.asarray(world_up, dtype=np.float64)
     return up / np.linalg.norm(up)
 
 
