@@ -182,11 +182,6 @@ def depth_frames(rec: Recording, frames: int):
         yield int(rec.frame_times_ns[k]), depth_view(depth, near, far), depth
 
 
-def camera_frame_id(rec: Recording) -> str:
-    """The frame of the camera that processing sees through: the left view's, or the depth camera's."""
-    return layout.DEPTH_FRAME if rec.is_rgbd else layout.LEFT_FRAME
-
-
 def frame_image(rec: Recording, i: int) -> np.ndarray:
     """The BGR image processing saw of frame i: the rectified left view, or an RGB-D recording's depth
     view (`depth_frames`' grey range)."""
@@ -231,7 +226,7 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
     n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
     results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
     preview = None
-    with DerivedWriter(out, overwrite=overwrite, inputs=(src,), camera_frame_id=camera_frame_id(rec)) as writer:
+    with DerivedWriter(out, overwrite=overwrite, inputs=(src,), camera_frame_id=rec.camera_frame_id) as writer:
         bar = tqdm(total=n_frames, desc=f"process {src.name}", unit="frame", disable=not options.progress)
         for result in results:
             t = engine.clock.now()
@@ -282,7 +277,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         # tissue: the tube's object frame; board_plane: Z = the board's normal (up), origin under the
         # tissue's centroid; camera: the camera frame itself (docs/reconstruction.md)
         "object_frame_kind": engine.frame.kind,
-        "camera_frame_id": camera_frame_id(rec),
+        "camera_frame_id": rec.camera_frame_id,
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         # the full cloud's axis vs its frontal part's (object_frame.cross_checked_frame)
         "object_frame_check": json.dumps({k: engine.frame.diagnostics[k] for k in ("axis_check_deg", "axis_from")

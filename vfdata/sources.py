@@ -130,7 +130,7 @@ class RecordingReplay:
                                             "recording")
         self.camera = self.recording.depth_camera if self.is_rgbd else self.recording.camera
         self.baseline_mm = 0.0 if self.is_rgbd else self.recording.stereo.baseline_mm
-        self.camera_frame_id = layout.DEPTH_FRAME if self.is_rgbd else layout.LEFT_FRAME
+        self.camera_frame_id = self.recording.camera_frame_id
         self.speed = float(speed)
         self.frames = self.recording.num_frames if max_frames is None else min(max_frames, self.recording.num_frames)
         if like_camera and self.speed == 0:

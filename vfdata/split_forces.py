@@ -64,14 +64,21 @@ def component_coupling(force_n: np.ndarray) -> dict[str, float | None]:
             for a, b in PAIRS}
 
 
-def beyond_training(force_n: np.ndarray, train_force_n: np.ndarray, margin: float = BEYOND_MARGIN) -> np.ndarray:
-    """(T, 3) bool: which components of each frame (T, 3) lie outside the training forces' range
-    (per component) by more than `margin` of that range (0: any value outside it)."""
+def outside_training(force_n: np.ndarray, train_force_n: np.ndarray,
+                     margin: float = BEYOND_MARGIN) -> tuple[np.ndarray, np.ndarray]:
+    """(below, above), each (T, 3) bool: which components of each frame (T, 3) lie below / above the
+    training forces' range (per component) by more than `margin` of that range (0: any value outside)."""
     train = np.asarray(train_force_n, dtype=np.float64)
     low, high = train.min(axis=0), train.max(axis=0)
     slack = margin * (high - low)
     force = np.asarray(force_n, dtype=np.float64)
-    return (force < low - slack) | (force > high + slack)
+    return force < low - slack, force > high + slack
+
+
+def beyond_training(force_n: np.ndarray, train_force_n: np.ndarray, margin: float = BEYOND_MARGIN) -> np.ndarray:
+    """(T, 3) bool: the components of each frame outside the training range (`outside_training`)."""
+    below, above = outside_training(force_n, train_force_n, margin)
+    return below | above
 
 
 def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
@@ -102,14 +109,15 @@ def split_warnings(summary: dict[str, dict]) -> list[str]:
     for split, row in summary.items():
         share = row.get("beyond_training")
         if share is not None and share > BEYOND_WARN:
+            trained = np.array([train["min_n"], train["max_n"]])
+            below = outside_training(np.array([row["min_n"]]), trained)[0][0]
+            above = outside_training(np.array([row["max_n"]]), trained)[1][0]
             beyond = []
-            for c, lo, hi, tlo, thi in zip(COMPONENTS, row["min_n"], row["max_n"], train["min_n"], train["max_n"],
-                                           strict=True):
-                margin = BEYOND_MARGIN * (thi - tlo)
-                if lo < tlo - margin:
-                    beyond.append(f"{LABELS[c]} down to {lo:.1f} N (training {tlo:.1f})")
-                if hi > thi + margin:
-                    beyond.append(f"{LABELS[c]} up to {hi:.1f} N (training {thi:.1f})")
+            for k, c in enumerate(COMPONENTS):
+                if below[k]:
+                    beyond.append(f"{LABELS[c]} down to {row['min_n'][k]:.1f} N (training {train['min_n'][k]:.1f})")
+                if above[k]:
+                    beyond.append(f"{LABELS[c]} up to {row['max_n'][k]:.1f} N (training {train['max_n'][k]:.1f})")
             lines.append(f"{split}: {share:.0%} of its {row['frames']} frames have force beyond the training range by "
                          f"more than a tenth of it ({', '.join(beyond)}): expect them under-predicted")
     if train is not None:

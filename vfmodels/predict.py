@@ -193,12 +193,12 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     started = time.perf_counter()
     force, side = forces_from_tracks(regressor, spec, tracks, window)
     force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
-    x_axis = x_axis_meaning(tracks.metadata.get("object_frame_kind", "tissue"), tracks.metadata.up_known)
+    x_axis = x_axis_meaning(tracks.metadata.object_frame_kind, tracks.metadata.up_known)
     meta = {"stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
-                                      camera_frame_id=tracks.metadata.get("camera_frame_id", layout.LEFT_FRAME))
+                                      camera_frame_id=tracks.metadata.camera_frame_id)
     with Recording.open(src) as rec:
         measured = rec.force_at(tracks.times_ns)[:, :3] if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")

@@ -113,7 +113,7 @@ class ForceEstimateWriter(PredictionCollector):
             frame, camera = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan")), layout.LEFT_FRAME
             if entry is not None and entry.processed.is_file():
                 with DerivedRecording.open(entry.processed) as derived:
-                    frame, camera = derived.object_frame, derived.meta.get("camera_frame_id", layout.LEFT_FRAME)
+                    frame, camera = derived.object_frame, derived.meta.camera_frame_id
             path.parent.mkdir(parents=True, exist_ok=True)
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
                                  {"stage": "train.py predict", "model": model, "recording": rid,

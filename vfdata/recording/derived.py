@@ -155,6 +155,16 @@ class DerivedMeta:
         """Whether the object frame's X came from gravity (the ECM pose), not the image's up."""
         return self.flag("up_known")
 
+    @property
+    def object_frame_kind(self) -> str:
+        """'tissue', 'board_plane' or 'camera' (files before 2026-12-03: 'tissue')."""
+        return self.values.get("object_frame_kind", "tissue")
+
+    @property
+    def camera_frame_id(self) -> str:
+        """The camera frame the object frame, mask and depth hang off (files before: the left view's)."""
+        return self.values.get("camera_frame_id", layout.LEFT_FRAME)
+
 
 # ---- writing -------------------------------------------------------------------------------------
 

@@ -211,6 +211,11 @@ class Recording:
         """An RGB-D recording: a depth image topic and no stereo pair (docs/format.md)."""
         return self.has(layout.DEPTH_IMAGE) and not self.has(layout.LEFT_IMAGE)
 
+    @property
+    def camera_frame_id(self) -> str:
+        """The frame of the camera processing sees through: the left view's, or the depth camera's."""
+        return layout.DEPTH_FRAME if self.is_rgbd else layout.LEFT_FRAME
+
     def _info_camera(self, topic: str) -> PinholeCamera:
         info = self.message(topic, 0)
         p = np.asarray(info.p).reshape(3, 4)

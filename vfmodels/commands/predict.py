@@ -98,7 +98,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
 
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
-    from vfdata.processing import camera_frame_id, camera_up, recording_prompt, rgbd_options
+    from vfdata.processing import camera_up, recording_prompt, rgbd_options
     from vfdata.recon.object_frame import x_axis_meaning
     from vfdata.recording.derived import write_force_estimate
     from vfdata.sources import RecordingReplay
@@ -120,7 +120,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
                                             recording_prompt(rec, args.recording, args.prompt), options,
                                             up=camera_up(rec), window=window, pipelined=args.pipelined,
                                             device=args.device)
-        n, camera_frame = source.frames, camera_frame_id(rec)
+        n, camera_frame = source.frames, source.camera_frame_id
         estimates, latencies = [], []
         # decoding stands in for the camera driver: in this thread, before the clock starts
         for stamp_ns, left, right, depth_mm in tqdm(source.decoded(), total=n, desc="stream", unit="frame",
