@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from vfdata.errors import BackendError, InputError
+from vfdata.recon.depth_ramp import ramp_gate
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.segmenter import Segmenter, check_image
 
@@ -187,15 +188,12 @@ class ColorTrackSegmenter(Segmenter):
             for x, y in prompt.positive:
                 u, v = int(x * sx) - bx, int(y * sy) - by
                 points[max(v - 2, 0) : max(v + 3, 0), max(u - 2, 0) : max(u + 3, 0)] = True
-            good = next((inside[usable & where] for where in (points, middle, np.ones_like(usable))
-                         if (usable & where).sum() >= 20), inside[inside > 0])
-            if good.size:
-                median = np.median(good)
-                tol = self.settings.depth_tolerance_mm * 3
-                region = gc[by : by + bh, bx : bx + bw]
-                region[(inside > 0) & (np.abs(inside - median) > tol) & (region == cv2.GC_PR_FGD)] = (
-                    cv2.GC_PR_BGD
-                )
+            seed = next((usable & where for where in (points, middle, np.ones_like(usable))
+                         if (usable & where).sum() >= 20), inside > 0)
+            # The tissue's depth follows a ramp across the box where it runs into depth (vfdata.recon.depth_ramp).
+            gate = ramp_gate(inside, usable, seed, self.settings.depth_tolerance_mm * 3)
+            region = gc[by : by + bh, bx : bx + bw]
+            region[(inside > 0) & ~gate & (region == cv2.GC_PR_FGD)] = cv2.GC_PR_BGD
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
         try:
             # GrabCut's GMM initialisation draws from OpenCV's global generator: seed it, so the mask does
@@ -212,8 +210,9 @@ class ColorTrackSegmenter(Segmenter):
                 "prompt", "the first frame's mask is empty: the prompt does not cover the tissue"
             )
         # GrabCut's colour models are global and often take in metal touching the tissue inside the
-        # box; re-decide every pixel once with the finer histogram model, GrabCut's mask as prior.
-        self._update_model(bins, mask, rate=1.0)
+        # box; re-decide every pixel once with the finer histogram model, GrabCut's mask as prior. The
+        # tissue's colours are learnt without the metal GrabCut took in (a grasper's jaws on the tissue).
+        self._update_model(bins, mask & ~metal, rate=1.0)
         depth_small = self._small_depth(depth_mm, (sw, sh))
         refined = self._decide(bins, metal, mask, depth_small)
         refined &= cv2.dilate(prompt_mask.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
