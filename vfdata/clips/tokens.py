@@ -64,6 +64,16 @@ def latest_clip_frames(recording: np.ndarray, frame_time_ns: np.ndarray, positio
     return order[first]
 
 
+def scored_clip_starts(times_ns: np.ndarray, clip_frames: int, stride: int) -> np.ndarray:
+    """Per frame, the first frame of the clip the test scores it from (`latest_clip_frames`: the clip in
+    which it has the latest position), -1 for a frame in no clip. Where it is max(0, t - clip_frames + 1)
+    the test's clip is the latest `clip_frames` frames ending at t, which prediction runs for frame t."""
+    out = np.full(len(times_ns), -1, dtype=np.int64)
+    for start in clip_starts(segments(times_ns), clip_frames, stride)[::-1]:  # the smallest start wins
+        out[start:start + clip_frames] = start
+    return out
+
+
 # ---- point features ------------------------------------------------------------------------------
 
 
@@ -259,6 +269,30 @@ def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     runs = segments(times_ns, period_ns=period_ns) if times_ns is not None else [(0, len(points))]
     rate = fps or spec.fps or (frame_rate(times_ns) if times_ns is not None else DEFAULT_FPS)
     return point_features(points, visible, runs, rate, spec.features, reference)
+
+
+def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
+                 object_frame: tuple[np.ndarray, np.ndarray] | None = None, *,
+                 first: tuple[np.ndarray, np.ndarray] | None = None, fps: float | None = None,
+                 reference_mm: np.ndarray | None = None, period_ns: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The token recipe of a recording's tracks, the one training (`decode`), prediction and the live
+    estimator share: tracks (F, N, 3) mm in the object frame + visibility (F, N) -> (tokens (F, N', C),
+    valid (F, N'), side). The recording's first frame, `first` = (points (N, 3), visible (N,)) (default:
+    these tracks' first), fixes the mirror to the canonical side (`recording_side`: the side is -1 when the
+    points were mirrored; `mirror_y(force, side)` turns a force back) and the top/bottom subset. A stream
+    that holds only its last frames passes `first`, `reference_mm` (each point's first visible position,
+    unmirrored), `fps` and `period_ns` (`point_tokens`) from its whole history."""
+    points = np.asarray(points_object_mm, dtype=np.float64)
+    visible = np.asarray(visible, dtype=bool)
+    if first is None and len(points):
+        first = (points[0], visible[0])
+    side = recording_side(spec, *first) if first is not None else 1.0
+    keep = top_bottom(first[0]) if spec.subset == "top_bottom_20" and first is not None else None
+    reference = None if reference_mm is None else mirror_y(np.asarray(reference_mm, dtype=np.float64), side)
+    tokens, valid = point_tokens(spec, mirror_y(points, side), visible, times_ns, object_frame, keep, fps=fps,
+                                 reference_mm=reference, period_ns=period_ns)
+    return tokens, valid, side
 
 
 def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
