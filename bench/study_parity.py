@@ -57,7 +57,7 @@ def main() -> int:
         same = scored_clip_starts(times, args.clip_frames, args.stride)[index] == np.maximum(
             0, index - args.clip_frames + 1)
         diff = np.abs(mine - test)
-        print(f"{path.name} ({recording.pop()}, {len(rows)} scored frames):")
+        print(f"{path} ({recording.pop()}, {len(rows)} scored frames):")
         print(f"  RMSE against the sensor: this file {force_metrics(mine, true)['rmse']:.4f} N, "
               f"the experiment's test {force_metrics(test, true)['rmse']:.4f} N")
         print(f"  |this - test| on every frame: max {diff.max():.4f} N, mean {diff.mean():.4f} N")
