@@ -251,3 +251,20 @@ def test_transfer_table_compares_each_test_orientation_with_validation(tmp_path)
     worst = max(per.values()) / summary["val"]["rmse"]
     assert f"{summary['val']['rmse']:.3f}" in text and f"{worst:.2f}" in text
     assert all(f"{a:g}°" in text for a in per)
+
+
+@pytest.mark.slow
+def test_quickstart_from_the_command_line(tmp_path, capsys):
+    """`vfdata quickstart` (one epoch of `visionforce`): Table I printed with the run's RMSE, recomputed here
+    from its test predictions; a second call makes nothing new."""
+    from vfdata.cli import main
+
+    args = ["quickstart", str(tmp_path / "qs"), "--epochs", "1", "--variants", "visionforce", "--workers", "2"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    run = tmp_path / "qs" / "results" / "runs" / "visionforce" / "seed0"
+    rmse = _rmse_by_hand(dict(np.load(run / "predictions.npz")))
+    assert "Table I" in printed and f"{rmse:.3f} ± n/a" in printed
+    stamp = (run / "metrics.json").stat().st_mtime_ns
+    assert main(args) == 0 and (run / "metrics.json").stat().st_mtime_ns == stamp
+    assert f"{rmse:.3f} ± n/a" in capsys.readouterr().out

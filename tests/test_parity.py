@@ -21,7 +21,7 @@ import yaml
 from vfdata.cli import main
 from vfdata.clips.datamodule import ForceDataModule
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import scored_clip_starts
+from vfdata.clips.tokens import clip_starts, segments
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.recording import Recording
 from vfdata.recording.derived import read_force_estimate, read_tracks
@@ -142,6 +142,15 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, ckpt, scored, p
     assert 0 < np.abs(offline[~same] - scored["pred"][~same]).max() < 0.5
     # and the RMSE `vfdata predict` prints is its forces' against the sensor, as the experiment's metric
     assert f"{force_metrics(offline, scored['true'])['rmse']:.3f} N" in predicted[1]
+
+
+def scored_clip_starts(times_ns: np.ndarray, clip_frames: int, stride: int) -> np.ndarray:
+    """Per frame, the first frame of the clip the test scores it from (`latest_clip_frames`: the clip in
+    which it has the latest position)."""
+    out = np.full(len(times_ns), -1, dtype=np.int64)
+    for start in clip_starts(segments(times_ns), clip_frames, stride)[::-1]:  # the smallest start wins
+        out[start:start + clip_frames] = start
+    return out
 
 
 def _has_foxglove() -> bool:

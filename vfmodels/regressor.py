@@ -159,8 +159,7 @@ class ForceRegressor(L.LightningModule):
     @property
     def causal(self) -> bool:
         """Whether the model runs frame by frame (has `encode_frames` and `decode_frames`)."""
-        return callable(getattr(self.model, "encode_frames", None)) and callable(getattr(self.model, "decode_frames",
-                                                                                         None))
+        return all(callable(getattr(self.model, name, None)) for name in ("encode_frames", "decode_frames"))
 
     def encode_frames(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
         """Model inputs (B, T, ...) in their own units (tokens: mm, mm/s) -> per-frame embeddings

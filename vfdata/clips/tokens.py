@@ -64,16 +64,6 @@ def latest_clip_frames(recording: np.ndarray, frame_time_ns: np.ndarray, positio
     return order[first]
 
 
-def scored_clip_starts(times_ns: np.ndarray, clip_frames: int, stride: int) -> np.ndarray:
-    """Per frame, the first frame of the clip the test scores it from (`latest_clip_frames`: the clip in
-    which it has the latest position), -1 for a frame in no clip. Where it is max(0, t - clip_frames + 1)
-    the test's clip is the latest `clip_frames` frames ending at t, which prediction runs for frame t."""
-    out = np.full(len(times_ns), -1, dtype=np.int64)
-    for start in clip_starts(segments(times_ns), clip_frames, stride)[::-1]:  # the smallest start wins
-        out[start:start + clip_frames] = start
-    return out
-
-
 # ---- point features ------------------------------------------------------------------------------
 
 
