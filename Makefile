@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 MIN_FREE_KB ?= 8000000
 VENV_DIR = $(dir $(abspath $(VENV)))
 
-.PHONY: setup quickstart test lint bench
+.PHONY: setup quickstart test test-slow lint bench
 
 $(STAMP): pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
@@ -30,6 +30,10 @@ quickstart: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The slow tier: whole pipelines on simulated and real recordings, DDP, Ray, every config.
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

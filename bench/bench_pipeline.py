@@ -67,7 +67,7 @@ def main() -> int:
         default=1,
         help="torch / OpenCV threads (default 1: one per process is fastest here)",
     )
-    parser.add_argument("--window", type=int, default=16, help="LSTM window (0: carried state)")
+    parser.add_argument("--window", type=int, help="LSTM window (default: the clip length; 0: carried state)")
     parser.add_argument("--depth", default="sgbm")
     parser.add_argument("--segment", default="colortrack")
     parser.add_argument("--depth-roi-margin", type=int, default=24,
@@ -107,7 +107,7 @@ def main() -> int:
             EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
             up=up,
             pipelined=pipelined,
-            window=None if args.window == 0 else args.window,
+            window=args.window,
         )
         warm = 3  # the first frames fix the object frame and the tracked points: not steady state
         for frame in frames[:warm]:
@@ -214,7 +214,7 @@ def live_and_offline(recording: Path, ckpt: Path, frames: int, args) -> None:
         estimator = StreamingForceEstimator(
             ckpt, source.camera, source.baseline_mm, prompt,
             EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
-            up=up, pipelined=pipelined, window=None if args.window == 0 else args.window)
+            up=up, pipelined=pipelined, window=args.window)
         server = FoxgloveServer(port=0)
         received: list[float] = []
         thread = threading.Thread(target=client, args=(server.url(), received), daemon=True)

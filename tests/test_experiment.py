@@ -15,6 +15,7 @@ from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder
 from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import load_manifest
+from vfdata.recording import Recording
 from vfmodels.experiment import report, runner
 from vfmodels.experiment.prepare import any_depth_only, derived_path, prepare
 from vfmodels.experiment.ridge_run import config_spec
@@ -162,6 +163,29 @@ def test_reports_from_run_folders(tmp_path):
     assert "Table I" in text and "fig7" in text and "object frame lowers the average RMSE" in text
 
 
+def _rmse_by_hand(predictions: dict) -> float:
+    """Table I's average RMSE of one run: per component sqrt(mean squared error) over every test frame,
+    averaged over Fx, Fy, Fz."""
+    return float(np.sqrt(((predictions["pred"] - predictions["true"]) ** 2).mean(axis=0)).mean())
+
+
+def test_experiment_reports_only_from_the_command_line(tmp_path, capsys):
+    from vfdata.cli import main
+
+    manifest = write_manifest(tmp_path)
+    out = tmp_path / "results"
+    _fake_runs(out, {"visionforce": 0.1, "proposed": 0.3})
+    assert main(["experiment", str(manifest), "--out", str(out), "--reports-only"]) == 0
+    printed = capsys.readouterr().out
+    assert "Table I" in printed and str(out / "table1_force.md") in printed
+    rows = [line.split("|") for line in (out / "table1_force.md").read_text().splitlines() if "RMSE (N)" in line]
+    averages = {row[1].strip(): float(row[-2].split("±")[0]) for row in rows}
+    for variant, noise, label in (("visionforce", 0.1, "VisionForce"), ("proposed", 0.3, "Proposed")):
+        expected = np.mean([_rmse_by_hand(_fake_predictions(noise, seed)) for seed in range(2)])
+        (got,) = [value for name, value in averages.items() if name.startswith(label)]
+        assert got == pytest.approx(expected, abs=5e-4), variant
+
+
 def test_claims_flag_a_failed_claim():
     agg = {name: {"value": {"rmse": rmse}} for name, rmse in
            (("proposed", 0.8), ("camera_frame", 1.0), ("velocity_only", 0.7), ("canonical_side", 0.45),
@@ -194,7 +218,10 @@ def test_experiment_end_to_end_on_a_tiny_simulated_dataset(tmp_path):
         tables.check_predictions(predictions)
         assert set(predictions["recording"]) == {"mini_002"} and metrics["test_frames"] == len(predictions["true"])
         assert len(np.unique(predictions["frame_time_ns"])) == len(predictions["frame_time_ns"])
-        assert metrics["pooled"]["rmse"] == pytest.approx(tables.run_metrics(predictions)["pooled"]["rmse"])
+        assert metrics["pooled"]["rmse"] == pytest.approx(_rmse_by_hand(predictions), rel=1e-6)
+        with Recording.open(tmp_path / "data" / "mini_002.mcap") as rec:  # the sensor's force at those frames
+            np.testing.assert_allclose(predictions["true"], rec.force_at(predictions["frame_time_ns"])[:, :3],
+                                       rtol=1e-5, atol=1e-5)
     for key in ("table1.md", "table2.md", "table3.md", "timing.md", "fig5", "fig6", "fig7", "training",
                 "first_frames"):
         assert result.reports[key].is_file(), key
@@ -224,3 +251,20 @@ def test_transfer_table_compares_each_test_orientation_with_validation(tmp_path)
     worst = max(per.values()) / summary["val"]["rmse"]
     assert f"{summary['val']['rmse']:.3f}" in text and f"{worst:.2f}" in text
     assert all(f"{a:g}°" in text for a in per)
+
+
+@pytest.mark.slow
+def test_quickstart_from_the_command_line(tmp_path, capsys):
+    """`vfdata quickstart` (one epoch of `visionforce`): Table I printed with the run's RMSE, recomputed here
+    from its test predictions; a second call makes nothing new."""
+    from vfdata.cli import main
+
+    args = ["quickstart", str(tmp_path / "qs"), "--epochs", "1", "--variants", "visionforce", "--workers", "2"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    run = tmp_path / "qs" / "results" / "runs" / "visionforce" / "seed0"
+    rmse = _rmse_by_hand(dict(np.load(run / "predictions.npz")))
+    assert "Table I" in printed and f"{rmse:.3f} ± n/a" in printed
+    stamp = (run / "metrics.json").stat().st_mtime_ns
+    assert main(args) == 0 and (run / "metrics.json").stat().st_mtime_ns == stamp
+    assert f"{rmse:.3f} ± n/a" in capsys.readouterr().out

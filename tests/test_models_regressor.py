@@ -167,3 +167,25 @@ def test_symmetry_views_make_predictions_equivariant(turns):
     assert reg({"tokens": x}).shape == (2, 5, 3)  # training sees one view
     with pytest.raises(ValueError):
         ForceRegressor(model, symmetry_turns=-1)
+
+
+@pytest.mark.parametrize("turns", [0, 1, 2])
+def test_the_causal_interface_gives_the_tested_forces(turns):
+    """`encode_frames` then `decode_frames` (what prediction and the live estimator run) give the forces
+    the test scores (`predict_forces`), views and normalisation included; the state carried over two
+    halves gives one run over the whole."""
+    torch.manual_seed(1)
+    model = SetTransformerLSTM(in_features=6, dim=16, heads=2, inducing_points=4, isab_blocks=1, lstm_hidden=8)
+    reg = ForceRegressor(model, symmetry_turns=turns).eval()
+    reg.set_normalisation(torch.zeros(6), torch.full((6,), 3.0), torch.tensor([0.5, 0.0, -1.0]), torch.ones(3) * 2)
+    x, valid = torch.randn(3, 7, 10, 6) * 3, torch.rand(3, 7, 10) > 0.2
+    with torch.no_grad():
+        tested = reg.predict_forces({"tokens": x, "valid": valid})
+        z = reg.encode_frames(x, valid)
+        assert z.shape == (max(1, 2 * turns) * 3, 7, 16)
+        forces, _ = reg.decode_frames(z)
+        torch.testing.assert_close(forces, tested, atol=1e-5, rtol=1e-4)
+        first, state = reg.decode_frames(z[:, :4])
+        rest, _ = reg.decode_frames(z[:, 4:], state)
+        torch.testing.assert_close(torch.cat([first, rest], dim=1), tested, atol=1e-5, rtol=1e-4)
+    assert reg.causal

@@ -10,7 +10,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import point_features, point_tokens, recording_side, top_bottom
+from vfdata.clips.tokens import point_tokens, recording_side, top_bottom, track_tokens
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
@@ -93,7 +93,7 @@ def test_force_series_plot(tmp_path):
     assert cv2.imread(str(path)).shape[0] > 100
 
 
-def test_point_tokens_match_the_training_features():
+def test_point_tokens_are_positions_and_central_difference_velocities():
     rng = np.random.default_rng(0)
     points = rng.normal(size=(6, 50, 3))
     visible = rng.random((6, 50)) > 0.2
@@ -101,9 +101,15 @@ def test_point_tokens_match_the_training_features():
     origin = np.array([1.0, 2.0, 50.0])
     tokens, valid = point_tokens(ClipSpec(fps=10.0), points, visible)
     assert tokens.shape == (6, 50, 6) and tokens.dtype == np.float32
-    expected, expected_valid = point_features(points, visible, [(0, 6)], 10.0, "pos_vel")
-    np.testing.assert_array_equal(tokens, expected)
-    np.testing.assert_array_equal(valid, expected_valid)
+    # Written out by hand: a velocity needs its point seen on both neighbours (one-sided at the ends).
+    seen_before = np.vstack([visible[:1], visible[:-1]])
+    seen_after = np.vstack([visible[1:], visible[-1:]])
+    np.testing.assert_array_equal(valid, visible & seen_before & seen_after)
+    np.testing.assert_allclose(tokens[..., :3][valid], points[valid], rtol=1e-6)
+    central = 0.5 * 10.0 * (points[2:] - points[:-2])
+    np.testing.assert_allclose(tokens[1:-1, :, 3:][valid[1:-1]], central[valid[1:-1]], rtol=1e-5)
+    np.testing.assert_allclose(tokens[0, :, 3:][valid[0]], (10.0 * (points[1] - points[0]))[valid[0]], rtol=1e-5)
+    assert (tokens[~valid] == 0).all()
     # Uniform motion: the velocity is the same at every frame, the ends included.
     moving = np.arange(6)[:, None, None] * np.array([2.0, -1.0, 0.0]) + np.zeros((1, 4, 3))
     vel, _ = point_tokens(ClipSpec(features="vel", fps=30.0), moving, np.ones((6, 4), bool))
@@ -116,14 +122,36 @@ def test_point_tokens_match_the_training_features():
     assert sub.shape == (6, 20, 6)
     z = points[0, :, 2]
     assert set(keep) == set(np.argsort(z)[:10]) | set(np.argsort(z)[-10:])
+    np.testing.assert_allclose(sub[..., :3][sub_valid], points[:, keep][sub_valid], rtol=1e-6)
     with pytest.raises(VisionForceError, match="object frame"):
         point_tokens(ClipSpec(frame="camera"), points, visible)
 
 
-def _regressor(seed: int = 0, in_features: int = 6) -> ForceRegressor:
+def test_the_token_recipe_of_a_stream_is_the_recordings():
+    """`track_tokens` on the last three frames of a stream, given the first frame and each point's first
+    position, gives the whole recording's tokens of the middle frame (mirror, subset, displacements)."""
+    points, visible = _tracks(frames=12)
+    points = points - np.array([0.0, 30.0, 0.0])  # the y < 0 flank: mirrored with canonical_side
+    visible[:3, :4] = False
+    times = np.arange(12) * 33_333_333
+    for spec in (ClipSpec(canonical_side=True, features="disp_vel"), ClipSpec(subset="top_bottom_20")):
+        whole, whole_valid, side = track_tokens(spec, points, visible, times)
+        assert side == (-1.0 if spec.canonical_side else 1.0)
+        for t in range(1, 11):
+            seen = visible[:t + 1] & np.isfinite(points[:t + 1]).all(axis=-1)
+            first = np.argmax(seen, axis=0)
+            reference = np.where(seen.any(axis=0)[:, None], points[first, np.arange(points.shape[1])], np.nan)
+            tokens, valid, _ = track_tokens(spec, points[t - 1:t + 2], visible[t - 1:t + 2], times[t - 1:t + 2],
+                                            first=(points[0], visible[0]), fps=30.0, reference_mm=reference)
+            np.testing.assert_array_equal(valid[1], whole_valid[t])
+            np.testing.assert_allclose(tokens[1], whole[t], rtol=1e-5, atol=1e-5)
+
+
+def _regressor(seed: int = 0, in_features: int = 6, symmetry_turns: int = 1) -> ForceRegressor:
+    """A small untrained regressor, tested as `visionforce` is: the mean of each clip and its mirror."""
     torch.manual_seed(seed)
     reg = ForceRegressor(SetTransformerLSTM(in_features=in_features, dim=32, heads=4, inducing_points=8,
-                                            lstm_hidden=48))
+                                            lstm_hidden=48), symmetry_turns=symmetry_turns)
     reg.set_normalisation(torch.zeros(in_features), torch.full((in_features,), 10.0), torch.tensor([0.1, -0.2, 0.5]),
                           torch.tensor([1.0, 2.0, 0.5]))
     return reg.eval()
@@ -142,7 +170,7 @@ def _as_tracks(points: np.ndarray, visible: np.ndarray) -> Tracks:
     return Tracks(np.arange(len(points), dtype=np.int64) * 33_333_333, points, visible, IDENTITY)
 
 
-def _forces(reg, spec, points, visible, window=predict.CLIP_FRAMES) -> np.ndarray:
+def _forces(reg, spec, points, visible, window=None) -> np.ndarray:
     return predict.forces_from_tracks(reg, spec, _as_tracks(points, visible), window)[0]
 
 
@@ -160,18 +188,38 @@ def test_windowed_forces_equal_the_model_on_each_causal_window():
             expected = reg.predict_forces(batch)[0, -1].numpy()
             np.testing.assert_allclose(forces[t], expected, rtol=1e-4, atol=1e-5)
         full = reg.predict_forces({"tokens": torch.from_numpy(tokens)[None], "valid": torch.from_numpy(valid)[None]})
-    carried = _forces(reg, spec, points, visible, window=None)
+    carried = _forces(reg, spec, points, visible, window=0)
     np.testing.assert_allclose(carried, full[0].numpy(), rtol=1e-4, atol=1e-5)
     # A later frame never changes an earlier estimate (causality).
     shorter = _forces(reg, spec, points[:30], visible[:30], window=8)
     np.testing.assert_allclose(shorter[:29], forces[:29], rtol=1e-4, atol=1e-5)
+    # The default history is the clip length of the checkpoint's spec.
+    np.testing.assert_allclose(_forces(reg, ClipSpec(clip_frames=8), points, visible), forces, rtol=1e-6)
+    # The symmetry views count: the same weights without them give other forces.
+    plain = _regressor(symmetry_turns=0)
+    plain.load_state_dict(reg.state_dict())
+    assert np.abs(_forces(plain, spec, points, visible, window=8) - forces).max() > 1e-3
+
+
+def test_a_model_that_cannot_run_frame_by_frame_is_refused_in_one_line(tmp_path, monkeypatch):
+    class WholeClip(torch.nn.Module):  # a token model with forward alone (as a 3D convolution would be)
+        input_key, channel_dim, config = "tokens", -1, {}
+
+        def forward(self, tokens, valid=None):
+            return tokens.mean(dim=2)[..., :3]
+
+    ckpt = _save_checkpoint(_regressor(), tmp_path / "c.ckpt", {"spec": {"input": "tracks"}})
+    assert predict.load_force_model(ckpt)[0].causal
+    monkeypatch.setattr(ForceRegressor, "load", classmethod(lambda cls, path: ForceRegressor(WholeClip())))
+    with pytest.raises(InputError, match="c.ckpt: WholeClip does not run frame by frame"):
+        predict.load_force_model(ckpt)
 
 
 def test_canonical_side_mirrors_the_tracks_in_and_the_force_back_out():
     """A model trained with canonical_side sees a recording shown from its y < 0 flank mirrored, and
     its Fy is turned back: the same as mirroring the tracks by hand, running the plain spec and
-    mirroring the force."""
-    reg = _regressor(2)
+    mirroring the force. (With the mirror among the symmetry views the mirror changes nothing.)"""
+    reg = _regressor(2, symmetry_turns=0)
     points, visible = _tracks()
     points = points - np.array([0.0, 30.0, 0.0])  # the first frame shows the y < 0 flank
     canonical = ClipSpec(canonical_side=True)
@@ -181,9 +229,12 @@ def test_canonical_side_mirrors_the_tracks_in_and_the_force_back_out():
     by_hand = _forces(reg, ClipSpec(), points * [1, -1, 1], visible) * [1, -1, 1]
     np.testing.assert_allclose(got, by_hand, rtol=1e-5, atol=1e-6)
     assert not np.allclose(got, _forces(reg, ClipSpec(), points, visible), atol=1e-3)
+    mirrored = _regressor(2, symmetry_turns=1)
+    np.testing.assert_allclose(_forces(mirrored, canonical, points, visible),
+                               _forces(mirrored, ClipSpec(), points, visible), rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("window", [8, None])
+@pytest.mark.parametrize("window", [8, 0])
 @pytest.mark.parametrize("subset", ["all", "top_bottom_20", "canonical_side", "disp_vel", "ref_disp_vel"])
 def test_streaming_model_reproduces_the_offline_forces(window, subset):
     reg = _regressor(1, in_features=9 if subset == "ref_disp_vel" else 6)

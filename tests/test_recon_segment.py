@@ -117,15 +117,10 @@ def test_a_diagonal_tissue_takes_its_depth_from_the_middle_of_its_box():
     assert mask[pale_bed].mean() < 0.05
 
 
-def test_prompt_off_the_tissue_gives_a_clear_error_or_small_mask():
-    frame, truth = _scene(0, None)
-    seg = make_segmenter("colortrack")
-    try:
-        mask = seg.start(frame, Prompt.parse("box:2,2,40,30"))
-    except InputError as exc:
-        assert "empty" in str(exc)
-    else:
-        assert mask_iou(mask, truth) < 0.2
+def test_a_prompt_off_the_tissue_is_a_clear_error():
+    frame, _ = _scene(0, None)
+    with pytest.raises(InputError, match="the first frame's mask is empty: the prompt does not cover the tissue"):
+        make_segmenter("colortrack").start(frame, Prompt.parse("box:2,2,40,30"))
 
 
 # ------------------------------------------------------------------------------- simulator video

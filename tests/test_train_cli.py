@@ -26,8 +26,23 @@ SYNTHETIC = [
 ]
 
 
+def _fit(args: list[str]):
+    """train.py fit in-process (what `train.main` runs): the finished CLI, to look at its trainer and model."""
+    from vfmodels.train import make_cli
+
+    return make_cli(["fit", *args])
+
+
+def _check_one_step(cli) -> None:
+    """A fast_dev_run fit: one training step, a finite loss, the training split's statistics in the model."""
+    assert cli.trainer.state.finished and cli.trainer.global_step == 1
+    assert torch.isfinite(cli.trainer.callback_metrics["train/loss_step"])
+    for key, value in cli.datamodule.normalisation.items():
+        torch.testing.assert_close(getattr(cli.model, key), value.float())
+
+
 def test_fast_dev_run(tmp_path):
-    train.main(["fit", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.fast_dev_run=true"])
+    _check_one_step(_fit([*SYNTHETIC, f"--trainer.default_root_dir={tmp_path}", "--trainer.fast_dev_run=true"]))
 
 
 def test_threads_option_sets_the_training_process(tmp_path):
@@ -120,9 +135,57 @@ def test_point_configs_fast_dev_run_on_tracks(config, tmp_path):
         write_recording(tmp_path, rid, frame_times(frames))
     manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "b", "split": "val"},
                                          {"id": "c", "orientation_deg": 30, "split": "test"}])
-    train.main(["fit", f"--config={config}", f"--data.manifest={manifest}", "--data.cache_dir=null",
-                "--data.progress=false", f"--trainer.default_root_dir={tmp_path / 'run'}",
-                "--trainer.fast_dev_run=true", "--trainer.enable_progress_bar=false", "--trainer.accelerator=cpu"])
+    cli = _fit([f"--config={config}", f"--data.manifest={manifest}", "--data.cache_dir=null", "--data.progress=false",
+                f"--trainer.default_root_dir={tmp_path / 'run'}", "--trainer.fast_dev_run=true",
+                "--trainer.enable_progress_bar=false", "--trainer.accelerator=cpu"])
+    _check_one_step(cli)
+    assert cli.model.input_mean.shape == (cli.datamodule.spec.channels,)  # the config's tokens reach the model
+    assert cli.model.model.config["in_features"] == cli.datamodule.spec.channels
+
+
+def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path):
+    """configs/visionforce.yaml as a user runs it, one epoch on tiny recordings: the checkpoint keeps what
+    prediction needs (the model, its symmetry views, the spec, the tracker), and `train.py test` on it
+    logs the RMSE of its forces, which we compute here from the saved model."""
+    from test_datasets import frame_times, write_manifest, write_recording
+
+    from vfdata.clips.dataset import ForceClipDataset
+    from vfdata.clips.tokens import latest_clip_frames
+    from vfmodels.regressor import ForceRegressor
+
+    for rid, frames in (("a", 24), ("b", 20), ("c", 20)):
+        write_recording(tmp_path, rid, frame_times(frames), tracker="klt")
+    manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "b", "split": "val"},
+                                         {"id": "c", "orientation_deg": 30, "split": "test"}])
+    run = [f"--config={ROOT / 'configs' / 'visionforce.yaml'}", f"--data.manifest={manifest}", "--data.cache_dir=null",
+           "--data.progress=false", f"--trainer.default_root_dir={tmp_path / 'run'}", "--trainer.accelerator=cpu",
+           "--trainer.enable_progress_bar=false"]
+    cli = _fit([*run, "--trainer.max_epochs=1"])
+    assert cli.trainer.current_epoch == 1
+    best = best_checkpoint(tmp_path / "run" / "checkpoints")
+    state = torch.load(best, weights_only=True)
+    assert state["force_model"]["symmetry_turns"] == 1 and state["force_model"]["init_args"]["in_features"] == 12
+    assert state["datamodule_hyper_parameters"]["spec"]["features"] == "polar_z_disp_vel"
+    assert state["ForceDataModule"] == {"tracker": "klt"}
+
+    train.main(["test", *run, f"--ckpt_path={best}"])
+    logged = (tmp_path / "run" / "csv" / "version_1" / "metrics.csv").read_text().splitlines()
+    header, values = logged[0].split(","), logged[-1].split(",")
+    test = dict(zip(header, values, strict=True))
+    regressor = ForceRegressor.load(best)
+    spec = cli.datamodule.spec
+    data = ForceClipDataset.from_manifest(manifest, "test", spec, progress=False)
+    items = [data[i] for i in range(len(data))]
+    with torch.no_grad():
+        pred = torch.cat([regressor.predict_forces({"tokens": i["tokens"][None], "valid": i["valid"][None]})
+                          for i in items]).reshape(-1, 3).numpy()
+    true = torch.cat([i["force"] for i in items]).numpy()
+    position = np.tile(np.arange(spec.clip_frames), len(items))
+    keep = latest_clip_frames(np.array(["c"] * len(true)), torch.cat([i["frame_time_ns"] for i in items]).numpy(),
+                              position)
+    rmse = np.sqrt(((pred[keep] - true[keep]) ** 2).mean(axis=0))
+    assert len(keep) == 20 and float(test["test/rmse"]) == pytest.approx(rmse.mean(), rel=1e-5)
+    assert float(test["test/rmse_fz"]) == pytest.approx(rmse[2], rel=1e-5)
 
 
 @pytest.mark.slow

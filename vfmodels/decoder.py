@@ -24,7 +24,8 @@ class ForceHeads(nn.Module):
 
 class CausalForceDecoder(nn.Module):
     """Per-frame embeddings (B, T, D) -> per-frame forces (B, T, 3), normalised units. A one-layer
-    unidirectional LSTM carries the history of the clip, so frame t depends only on frames <= t."""
+    unidirectional LSTM carries the history of the clip, so frame t depends only on frames <= t; `run`
+    also returns the LSTM state after the last frame, from which a stream carries on."""
 
     def __init__(self, in_features: int, hidden_size: int = 192, head_hidden: int = 64):
         super().__init__()
@@ -32,5 +33,10 @@ class CausalForceDecoder(nn.Module):
         self.heads = ForceHeads(hidden_size, head_hidden)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h, _ = self.lstm(z)
-        return self.heads(h)
+        return self.run(z)[0]
+
+    def run(self, z: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor] | None = None
+            ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """(forces (B, T, 3), the LSTM's (h, c) after frame T-1), starting from `state` (None: zeros)."""
+        h, state = self.lstm(z, state)
+        return self.heads(h), state

@@ -27,11 +27,11 @@ import torch
 
 from vfdata.calibration import PinholeCamera
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.clips.tokens import mirror_y, track_tokens
 from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
-from vfmodels.predict import CLIP_FRAMES, load_force_model, model_device
+from vfmodels.predict import history, load_force_model, model_device
 from vfmodels.regressor import ForceRegressor
 
 # The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
@@ -63,18 +63,20 @@ class StreamingForceModel:
     """The model half of live estimation: object-frame tracks in, one frame at a time, forces out.
 
     `push(stamp_ns, points_object_mm (N, 3), visible (N,))` -> (stamp, force (3,) N) of the previous
-    frame, or None on the first frame; `flush()` gives the last frame's."""
+    frame, or None on the first frame; `flush()` gives the last frame's. Each frame's tokens follow the
+    recipe of training (`vfdata.clips.tokens.track_tokens`), and its force is the regressor's
+    (`ForceRegressor.encode_frames` / `decode_frames`, symmetry views included) on the last `window`
+    frames (None: the clip length it was trained on; 0: the state carried over the whole stream)."""
 
     def __init__(self, regressor: ForceRegressor, spec: ClipSpec, rotation: np.ndarray, origin_mm: np.ndarray,
-                 window: int | None = CLIP_FRAMES):
-        self.regressor, self.spec, self.window = regressor, spec, window
+                 window: int | None = None):
+        self.regressor, self.spec, self.window = regressor, spec, history(spec, window)
         self.object_frame = (np.asarray(rotation), np.asarray(origin_mm))
         self.recent: deque = deque(maxlen=3)  # (stamp, object-frame points, visible) of the last frames
         self.stamps: deque = deque(maxlen=STAMP_HISTORY)  # the source's period, as a recording's median
-        self.embeddings: deque = deque(maxlen=window or 1)
-        self.state = None  # LSTM (h, c) when window is None
-        self.keep: np.ndarray | None = None  # top/bottom subset, fixed on the first frame
-        self.side = 1.0  # the y mirror (`ClipSpec.canonical_side`), fixed on the first frame
+        self.embeddings: deque = deque(maxlen=self.window or 1)  # (V, 1, D) per frame
+        self.state = None  # the temporal model's, when the window is the whole stream
+        self.first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame: mirror side, subset
         self.reference: np.ndarray | None = None  # each point's first visible position (displacements)
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
@@ -85,10 +87,8 @@ class StreamingForceModel:
             self.reference = np.full_like(points, np.nan)
         first_seen = np.isnan(self.reference).any(axis=1) & visible & np.isfinite(points).all(axis=1)
         self.reference[first_seen] = points[first_seen]
-        if len(self.recent) == 1:
-            self.side = recording_side(self.spec, self.recent[0][1], self.recent[0][2])
-            if self.spec.subset == "top_bottom_20":
-                self.keep = top_bottom(self.recent[0][1])
+        if self.first is None:
+            self.first = (points, visible)
             return None
         # The middle frame of the last three (the first frame, from the first two): its velocity is
         # a central difference (one-sided at the start), as over a whole recording.
@@ -104,34 +104,29 @@ class StreamingForceModel:
         self.recent.clear()
         self.stamps.clear()
         self.embeddings.clear()
-        self.state = None
-        self.reference = None
+        self.state = self.first = self.reference = None
         return result
 
     @torch.no_grad()
     def _estimate(self, target: int) -> tuple[int, np.ndarray]:
         recent = list(self.recent)
-        points = mirror_y(np.stack([p[1] for p in recent]), self.side)
-        visible = np.stack([p[2] for p in recent])
         # Velocities as over a whole recording: one-sided across a dropped frame (an interval over
         # GAP_FACTOR periods: a Kinect's, 70 ms of 30), at the rate of the source's usual period.
-        history = np.array(self.stamps, dtype=np.int64)
-        fps = skipped_frame_rate(self.spec.fps or 30.0, history)
-        period_ns = float(np.median(np.diff(history))) if len(history) > 1 else None
-        reference = mirror_y(self.reference, self.side)
-        tokens, valid = point_tokens(self.spec, points, visible, np.array([p[0] for p in recent]), self.object_frame,
-                                     self.keep, fps=fps, reference_mm=reference, period_ns=period_ns)
-        model, device = self.regressor.model, model_device(self.regressor)
-        x = self.regressor.normalise_input(torch.from_numpy(tokens[target])[None, None].to(device))
-        z = model.encode_frames(x, torch.from_numpy(valid[target])[None, None].to(device))[0]  # (1, D)
-        decoder = model.decoder
-        if self.window is None:
-            h, self.state = decoder.lstm(z[None], self.state)
+        history_ns = np.array(self.stamps, dtype=np.int64)
+        tokens, valid, side = track_tokens(
+            self.spec, np.stack([p[1] for p in recent]), np.stack([p[2] for p in recent]),
+            np.array([p[0] for p in recent]), self.object_frame, first=self.first,
+            fps=skipped_frame_rate(self.spec.fps or 30.0, history_ns), reference_mm=self.reference,
+            period_ns=float(np.median(np.diff(history_ns))) if len(history_ns) > 1 else None)
+        device = model_device(self.regressor)
+        z = self.regressor.encode_frames(torch.from_numpy(tokens[target])[None, None].to(device),
+                                         torch.from_numpy(valid[target])[None, None].to(device))  # (V, 1, D)
+        if self.window == 0:
+            force, self.state = self.regressor.decode_frames(z, self.state)
         else:
-            self.embeddings.append(z[0])
-            h, _ = decoder.lstm(torch.stack(list(self.embeddings))[None])
-        force = self.regressor.denormalise_force(decoder.heads(h[0, -1])).cpu().numpy().astype(np.float64)
-        return recent[target][0], mirror_y(force, self.side)
+            self.embeddings.append(z)
+            force, _ = self.regressor.decode_frames(torch.cat(list(self.embeddings), dim=1))
+        return recent[target][0], mirror_y(force[0, -1].cpu().numpy().astype(np.float64), side)
 
 
 class StreamingForceEstimator:
@@ -143,12 +138,13 @@ class StreamingForceEstimator:
 
     def __init__(self, ckpt: str | Path, camera: PinholeCamera, baseline_mm: float, prompt: str | Prompt,
                  options: EngineOptions | None = None, up: np.ndarray | None = None,
-                 window: int | None = CLIP_FRAMES, pipelined: bool = False, device: str = "cpu"):
-        """`device`: where the force model runs (the tracker's is `options.tracker_options["device"]`)."""
+                 window: int | None = None, pipelined: bool = False, device: str = "cpu"):
+        """`device`: where the force model runs (the tracker's is `options.tracker_options["device"]`);
+        `window`: frames of history (None: the clip length the model was trained on; 0: the whole stream)."""
         self.regressor, self.spec = load_force_model(ckpt, device)
         self.camera, self.baseline_mm, self.up = camera, float(baseline_mm), up
         self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
-        self.options, self.window, self.pipelined = options or EngineOptions(), window, pipelined
+        self.options, self.window, self.pipelined = options or EngineOptions(), history(self.spec, window), pipelined
         self._pool: ThreadPoolExecutor | None = None
         self._finished_clock = None
         # Called with each tracked frame's FrameResult before its force is estimated (the live view).

@@ -14,8 +14,10 @@ to that choice; on an RGB-D recording the frame is the board's (X: the image's r
 to the board's normal) or the camera's. The output metadata says which (`x_axis`).
 
 The model is causal: frame t's force uses frames up to t (and t+1 for its central-difference
-velocity). By default the LSTM runs from a zero state over the last `window` = 16 frames (the clip
-length it was trained on); `window=None` carries the state over the whole recording instead.
+velocity). It runs through `ForceRegressor.encode_frames` / `decode_frames`, the one inference path
+(normalisation and symmetry views as in the test): by default frame t's force is the model's on the
+latest clip ending at t (its last `spec.clip_frames` frames, the clip length it was trained on, from a
+zero state); `window=N` takes N frames, `window=0` carries the state over the whole recording.
 """
 
 from __future__ import annotations
@@ -30,20 +32,19 @@ import torch
 from tqdm import tqdm
 
 from vfdata.clips.datamodule import spec_from_checkpoint_hparams
+from vfdata.clips.decode import object_force_at
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import frame_rate, mirror_y, point_tokens, recording_side, top_bottom
+from vfdata.clips.tokens import frame_rate, mirror_y, track_tokens
 from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
+from vfmodels.metrics import force_metrics
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.regressor import ForceRegressor, read_checkpoint
 from vfmodels.reports.figures import plot_force_series
-
-CLIP_FRAMES = 16
-
 
 # ---- the model -----------------------------------------------------------------------------------
 
@@ -58,6 +59,9 @@ def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegres
     spec = spec_from_checkpoint_hparams(read_checkpoint(ckpt).get("datamodule_hyper_parameters") or {}, Path(ckpt))
     if spec.input != "tracks":
         raise InputError(ckpt, f"the model was trained on '{spec.input}' inputs, not tracked points")
+    if not regressor.causal:
+        raise InputError(ckpt, f"{type(regressor.model).__name__} does not run frame by frame (no encode_frames/"
+                               "decode_frames: vfmodels/regressor.py says what a model implements)")
     if regressor.model.config.get("in_features", spec.channels) != spec.channels:
         raise InputError(ckpt, f"model takes {regressor.model.config['in_features']} features per point, its "
                                f"clip spec gives {spec.channels} ({spec.features})")
@@ -91,47 +95,52 @@ def model_device(regressor: ForceRegressor) -> torch.device:
 @torch.no_grad()
 def frame_embeddings(regressor: ForceRegressor, tokens: np.ndarray, valid: np.ndarray, batch: int = 256
                      ) -> torch.Tensor:
-    """Per-frame set embeddings z_t (T, D) (frames are independent before the LSTM, so they are
-    batched freely)."""
-    model, device = regressor.model, model_device(regressor)
-    out = []
-    for start in range(0, len(tokens), batch):
-        x = torch.from_numpy(np.ascontiguousarray(tokens[start:start + batch]))[None].to(device)
-        m = torch.from_numpy(np.ascontiguousarray(valid[start:start + batch]))[None].to(device)
-        out.append(model.encode_frames(regressor.normalise_input(x), m)[0])
-    return torch.cat(out) if out else torch.zeros(0, model.config.get("dim", 64), device=device)
+    """Per-frame embeddings (V, T, D) of every symmetry view (`ForceRegressor.encode_frames`; frames are
+    independent before the temporal model, so they are batched freely)."""
+    device = model_device(regressor)
+
+    def tensor(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a))[None].to(device)
+
+    return torch.cat([regressor.encode_frames(tensor(tokens[s:s + batch]), tensor(valid[s:s + batch]))
+                      for s in range(0, len(tokens), batch)], dim=1)
 
 
 @torch.no_grad()
-def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int | None = CLIP_FRAMES) -> np.ndarray:
-    """Forces (T, 3) in N from per-frame embeddings (T, D): frame t from the LSTM run over frames
-    max(0, t - window + 1)..t from a zero state (window None: one run over everything)."""
-    decoder = regressor.model.decoder
-    if window is None or len(z) <= window:
-        h, _ = decoder.lstm(z[None])
-        return regressor.denormalise_force(decoder.heads(h[0])).cpu().numpy()
-    t = len(z)  # all windows at once: (T, window, D)
-    index = np.arange(t)[:, None] + np.arange(-window + 1, 1)[None, :]
-    h, _ = decoder.lstm(z[torch.from_numpy(np.clip(index, 0, None)).to(z.device)])
+def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int) -> np.ndarray:
+    """Forces (T, 3) in N from per-frame embeddings (V, T, D): frame t from the temporal model run over
+    frames max(0, t - window + 1)..t from a zero state (window 0: one run over everything)."""
+    t = z.shape[1]
+    if window == 0 or t <= window:
+        return regressor.decode_frames(z)[0][0].cpu().numpy()
+    index = np.arange(t)[:, None] + np.arange(-window + 1, 1)[None, :]  # all windows at once: (T, window)
+    windows = z[:, torch.from_numpy(np.clip(index, 0, None)).to(z.device)]  # (V, T, window, D)
+    out = regressor.decode_frames(windows.flatten(0, 1))[0][:, -1]
     # Frames 0..window-2 have shorter histories: their windows start at frame 0 and repeat it; run
     # them exactly instead, from the one full run over the first window.
-    out = decoder.heads(h[:, -1])
-    head, _ = decoder.lstm(z[None, :window])
-    out[: window - 1] = decoder.heads(head[0, : window - 1])
-    return regressor.denormalise_force(out).cpu().numpy()
+    out[: window - 1] = regressor.decode_frames(z[:, :window])[0][0, : window - 1]
+    return out.cpu().numpy()
 
 
-def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = CLIP_FRAMES
+def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = None
                        ) -> tuple[np.ndarray, float]:
     """A whole recording's tracks -> (forces (T, 3) N in the object frame, the side it was read from:
-    -1 when `spec.canonical_side` mirrored it)."""
-    points, visible = tracks.points_object_mm, tracks.visible
-    side = recording_side(spec, points[0], visible[0]) if len(points) else 1.0
-    keep = top_bottom(points[0]) if spec.subset == "top_bottom_20" and len(points) else None
-    tokens, valid = point_tokens(spec, mirror_y(points, side), visible, tracks.times_ns,
-                                 (tracks.frame.rotation, tracks.frame.origin), keep)
-    z = frame_embeddings(regressor, tokens, valid)
-    return mirror_y(windowed_forces(regressor, z, window), side), side
+    -1 when `spec.canonical_side` mirrored it). `window`: frames of history (None: the clip length the
+    model was trained on, `spec.clip_frames`; 0: the whole recording)."""
+    tokens, valid, side = track_tokens(spec, tracks.points_object_mm, tracks.visible, tracks.times_ns,
+                                       (tracks.frame.rotation, tracks.frame.origin))
+    if not len(tokens):
+        return np.zeros((0, 3)), side
+    force = windowed_forces(regressor, frame_embeddings(regressor, tokens, valid), history(spec, window))
+    return mirror_y(force, side), side
+
+
+def history(spec: ClipSpec, window: int | None) -> int:
+    """Frames of history a force is estimated from: `window`, or the clip length the model was trained on
+    (None); 0 carries the temporal state over the whole recording."""
+    if window is not None and window < 0:
+        raise VisionForceError(f"window {window}: a number of frames >= 0 (0: the whole recording)")
+    return spec.clip_frames if window is None else int(window)
 
 
 # ---- offline pipeline ----------------------------------------------------------------------------
@@ -148,6 +157,7 @@ class PredictResult:
     stage_fps: dict[str, float]
     up_known: bool
     x_axis: str  # what the object frame's X is (vfdata.recon.object_frame.x_axis_meaning)
+    metrics: dict[str, float] | None = None  # against the recording's force sensor, as Table I (none without)
 
 
 def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
@@ -168,7 +178,7 @@ def _tracked_by(processed: Path) -> str | None:
 
 
 def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | None = None,
-                      options: ProcessOptions | None = None, window: int | None = CLIP_FRAMES, video: bool = True,
+                      options: ProcessOptions | None = None, window: int | None = None, video: bool = True,
                       progress: bool = True, overwrite: bool = False, reuse_processed: bool = True,
                       device: str = "cpu") -> PredictResult:
     """The whole pipeline on a recording MCAP (force channel and ECM pose not needed). Existing
@@ -191,6 +201,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     tracks = read_tracks(paths["processed"])
 
     started = time.perf_counter()
+    window = history(spec, window)
     force, side = forces_from_tracks(regressor, spec, tracks, window)
     force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
     x_axis = x_axis_meaning(tracks.metadata.object_frame_kind, tracks.metadata.up_known)
@@ -200,13 +211,15 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
                                       camera_frame_id=tracks.metadata.camera_frame_id)
     with Recording.open(src) as rec:
-        measured = rec.force_at(tracks.times_ns)[:, :3] if rec.has(layout.WRENCH) else None
+        measured = object_force_at(rec, tracks.times_ns) if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")
         plot = plot_force_series(force, paths["plot"], measured_n=measured,
                                  title=f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})")
         video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress) if video else None
+    known = np.zeros(0, bool) if measured is None else np.isfinite(measured).all(axis=1)
+    metrics = force_metrics(force[known], measured[known]) if known.sum() > 1 else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
-                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis)
+                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,
@@ -229,6 +242,5 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
     return writer.path
 
 
-__all__ = ["CLIP_FRAMES", "PredictResult", "forces_from_tracks", "frame_embeddings",
-           "load_force_model", "predict_recording", "prediction_tracker", "trained_tracker", "windowed_forces",
-           "write_overlay_video"]
+__all__ = ["PredictResult", "forces_from_tracks", "frame_embeddings", "history", "load_force_model",
+           "predict_recording", "prediction_tracker", "trained_tracker", "windowed_forces", "write_overlay_video"]

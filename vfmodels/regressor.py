@@ -8,7 +8,20 @@ N, `orientation_deg` (B,), `recording` list[str], `frame_time_ns` (B, T) int64.
 
 Models: an `nn.Module` with `forward(x, valid) -> (B, T, 3)` in normalised units, attributes
 `input_key`, `channel_dim` (the input's feature axis, which the input statistics apply to) and
-`config` (its constructor arguments as plain values, stored in checkpoints).
+`config` (its constructor arguments as plain values, stored in checkpoints); registered in
+`vfmodels.registry.MODELS` so that a checkpoint can name it. That is enough for `train.py` (fit, test,
+predict) and `vfdata experiment`.
+
+Frame by frame (`vfdata predict`, `--stream`, `vfdata live`), a model also needs the causal interface,
+which `SetTransformerLSTM` implements for reference:
+- `encode_frames(x, valid) -> z (B, T, D)`: each frame's embedding from that frame alone;
+- `decode_frames(z, state=None) -> (forces (B, T, 3) normalised, state)`: causal in time, from `state`
+  (None: the zero state a training clip starts from) to the state after the last frame;
+- `forward(x, valid) == decode_frames(encode_frames(x, valid))[0]`.
+Nobody calls them directly: `ForceRegressor.encode_frames` / `decode_frames` add the normalisation and
+the symmetry views, so that every caller gets the forces the test scores. A model without them (the
+image baselines: a 3D convolution looks both ways in time) trains and tests, and prediction refuses it
+in one line.
 """
 
 from __future__ import annotations
@@ -126,26 +139,58 @@ class ForceRegressor(L.LightningModule):
     def denormalise_force(self, force: torch.Tensor) -> torch.Tensor:
         return force if self.force_mean.numel() == 0 else force * self.force_std + self.force_mean
 
-    # ---- forward and loss ----------------------------------------------------------------------
+    # ---- forward -------------------------------------------------------------------------------
 
     def forward(self, batch: dict[str, Any]) -> torch.Tensor:
         """Normalised force predictions (B, T, 3); outside training averaged over the symmetry views."""
         model = self._compiled if self._compiled is not None else self.model
         x, valid = batch[self.model.input_key], batch.get("valid")
-        turns = self.symmetry_turns
-        if self.training or not turns:
+        if self.training or not self.symmetry_turns:
             return model(self.normalise_input(x), valid)
-        # All views in one batch: one network pass instead of 2 * turns.
-        views = torch.stack(symmetry_views(turns, device=x.device))  # (V, 3, 3)
-        turned = torch.einsum("vij,...kj->v...ki", views, x.float().unflatten(-1, (-1, 3))).flatten(-2)
-        both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
-        force_n = self.denormalise_force(model(self.normalise_input(turned.flatten(0, 1)), both))
-        back = torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views)
-        return self.normalise_force(back.mean(0))
+        x, valid = self._views_of(x, valid)
+        return self.normalise_force(self._mean_of_views(self.denormalise_force(model(self.normalise_input(x), valid))))
 
     def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
         """Forces (B, T, 3) in N."""
         return self.denormalise_force(self(batch))
+
+    # ---- the causal interface: `vfdata predict`, `--stream` and `vfdata live` (module docstring) ----
+
+    @property
+    def causal(self) -> bool:
+        """Whether the model runs frame by frame (has `encode_frames` and `decode_frames`)."""
+        return all(callable(getattr(self.model, name, None)) for name in ("encode_frames", "decode_frames"))
+
+    def encode_frames(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """Model inputs (B, T, ...) in their own units (tokens: mm, mm/s) -> per-frame embeddings
+        (V * B, T, D) of the V symmetry views (V = 2 * symmetry_turns, 1 without), view by view."""
+        x, valid = self._views_of(x, valid)
+        return self.model.encode_frames(self.normalise_input(x), valid)
+
+    def decode_frames(self, z: torch.Tensor, state: Any = None) -> tuple[torch.Tensor, Any]:
+        """Embeddings (V * B, T, D) of `encode_frames` -> (forces (B, T, 3) in N, the mean of the views
+        turned back; the temporal state after the last frame, to carry on from). `state` None: the zero
+        state a clip starts from, so one call on a clip's embeddings gives what the test scores."""
+        out, state = self.model.decode_frames(z, state)
+        return self._mean_of_views(self.denormalise_force(out)), state
+
+    def _views_of(self, x: torch.Tensor, valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Inputs (B, ...) -> every view's (V * B, ...), in one batch: one network pass for all views."""
+        if not self.symmetry_turns:
+            return x, valid
+        views = torch.stack(symmetry_views(self.symmetry_turns, device=x.device))  # (V, 3, 3)
+        turned = torch.einsum("vij,...kj->v...ki", views, x.float().unflatten(-1, (-1, 3))).flatten(-2)
+        both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
+        return turned.flatten(0, 1), both
+
+    def _mean_of_views(self, force_n: torch.Tensor) -> torch.Tensor:
+        """Forces (V * B, ..., 3) in N of every view -> (B, ..., 3): each turned back, then averaged."""
+        if not self.symmetry_turns:
+            return force_n
+        views = torch.stack(symmetry_views(self.symmetry_turns, device=force_n.device))
+        return torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views).mean(0)
+
+    # ---- loss and steps ------------------------------------------------------------------------
 
     def _loss(self, pred: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
         # Frames without a force sample (NaN) take no part in the loss.

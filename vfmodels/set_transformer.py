@@ -109,6 +109,10 @@ class SetTransformerLSTM(nn.Module):
     a one-layer unidirectional LSTM and three independent heads (Fx, Fy, Fz). The output is invariant
     to the order of the N points and causal in time (frame t sees frames <= t only).
 
+    The reference implementation of the causal interface (`vfmodels.regressor`): `encode_frames` (each
+    frame on its own) and `decode_frames` (the LSTM, carrying its state), which prediction and the live
+    estimator run through `ForceRegressor`.
+
     Invalid points (not visible, or padding) are zeroed and masked as attention keys. A frame with no
     valid point at all is encoded as a set of all-zero tokens (a fixed "nothing visible" embedding)
     rather than an attention over nothing, which is undefined.
@@ -163,5 +167,10 @@ class SetTransformerLSTM(nn.Module):
             x = block(x, valid)
         return self.pool(x, valid).view(b, t, -1)
 
+    def decode_frames(self, z: torch.Tensor, state: tuple | None = None) -> tuple[torch.Tensor, tuple]:
+        """Per-frame embeddings (B, T, dim) -> (forces (B, T, 3), the LSTM state after the last frame), from
+        `state` (None: the zero state a clip starts from)."""
+        return self.decoder.run(z, state)
+
     def forward(self, tokens: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-        return self.decoder(self.encode_frames(tokens, valid))
+        return self.decode_frames(self.encode_frames(tokens, valid))[0]

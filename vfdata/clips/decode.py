@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import mirror_y, point_tokens, recording_side, sample_cloud, top_bottom
+from vfdata.clips.tokens import mirror_y, sample_cloud, track_tokens
 from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry
 from vfdata.recording import Recording, layout
@@ -49,19 +49,22 @@ class Decoded:
 
 
 def force_at(entry: ManifestEntry, times_ns: np.ndarray) -> np.ndarray:
-    """(F, 3) float32 N in the object frame: the recording's force interpolated at `times_ns` (NaN across
-    sensor gaps), turned by the metadata's `sensor_to_object` rotation when the sensor's frame is not the
-    object's (docs/bags.md)."""
+    """(F, 3) float32 N in the object frame: the recording's force at `times_ns` (`object_force_at`)."""
     if not entry.mcap.is_file():
         raise InputError(entry.mcap, f"recording '{entry.id}' not found (convert it with `vfdata convert`)")
     with Recording.open(entry.mcap) as rec:
         if not rec.has(layout.WRENCH):
             raise InputError(entry.mcap, f"recording '{entry.id}' has no {layout.WRENCH}: no force to train on")
-        force = rec.force_at(times_ns)[:, :3]
-        rotation = rec.metadata.extra.get("sensor_to_object")
-        if rotation:
-            force = force @ np.asarray(json.loads(rotation), dtype=np.float64).T
-        return force.astype(np.float32)
+        return object_force_at(rec, times_ns).astype(np.float32)
+
+
+def object_force_at(rec: Recording, times_ns: np.ndarray) -> np.ndarray:
+    """(F, 3) N in the object frame: the recording's force interpolated at `times_ns` (NaN across sensor
+    gaps), turned by the metadata's `sensor_to_object` rotation when the sensor's frame is not the
+    object's (docs/bags.md)."""
+    force = rec.force_at(times_ns)[:, :3]
+    rotation = rec.metadata.extra.get("sensor_to_object")
+    return force @ np.asarray(json.loads(rotation), dtype=np.float64).T if rotation else force
 
 
 def decoded_tracks(spec: ClipSpec, times_ns: np.ndarray, points_object_mm: np.ndarray, visible: np.ndarray,
@@ -69,9 +72,7 @@ def decoded_tracks(spec: ClipSpec, times_ns: np.ndarray, points_object_mm: np.nd
     """Tracked points (F, N, 3) mm in the object frame (`rotation`, `origin_mm`: object -> camera) with
     their visibility (F, N) and the force (F, 3) N -> the spec's tokens, mirrored to the canonical side
     when the spec asks."""
-    side = recording_side(spec, points_object_mm[0], visible[0]) if len(points_object_mm) else 1.0
-    keep = top_bottom(points_object_mm[0]) if spec.subset == "top_bottom_20" and len(points_object_mm) else None
-    tokens, valid = point_tokens(spec, mirror_y(points_object_mm, side), visible, times_ns, (rotation, origin_mm), keep)
+    tokens, valid, side = track_tokens(spec, points_object_mm, visible, times_ns, (rotation, origin_mm))
     return Decoded(times_ns, mirror_y(force_n, side).astype(np.float32), tokens, valid, side)
 
 

@@ -261,6 +261,30 @@ def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     return point_features(points, visible, runs, rate, spec.features, reference)
 
 
+def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
+                 object_frame: tuple[np.ndarray, np.ndarray] | None = None, *,
+                 first: tuple[np.ndarray, np.ndarray] | None = None, fps: float | None = None,
+                 reference_mm: np.ndarray | None = None, period_ns: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The token recipe of a recording's tracks, the one training (`decode`), prediction and the live
+    estimator share: tracks (F, N, 3) mm in the object frame + visibility (F, N) -> (tokens (F, N', C),
+    valid (F, N'), side). The recording's first frame, `first` = (points (N, 3), visible (N,)) (default:
+    these tracks' first), fixes the mirror to the canonical side (`recording_side`: the side is -1 when the
+    points were mirrored; `mirror_y(force, side)` turns a force back) and the top/bottom subset. A stream
+    that holds only its last frames passes `first`, `reference_mm` (each point's first visible position,
+    unmirrored), `fps` and `period_ns` (`point_tokens`) from its whole history."""
+    points = np.asarray(points_object_mm, dtype=np.float64)
+    visible = np.asarray(visible, dtype=bool)
+    if first is None and len(points):
+        first = (points[0], visible[0])
+    side = recording_side(spec, *first) if first is not None else 1.0
+    keep = top_bottom(first[0]) if spec.subset == "top_bottom_20" and first is not None else None
+    reference = None if reference_mm is None else mirror_y(np.asarray(reference_mm, dtype=np.float64), side)
+    tokens, valid = point_tokens(spec, mirror_y(points, side), visible, times_ns, object_frame, keep, fps=fps,
+                                 reference_mm=reference, period_ns=period_ns)
+    return tokens, valid, side
+
+
 def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """`count` points of a cloud (M, 3), without replacement when M >= count; (count, 3) float32 and
     valid (count,) (all False for an empty cloud)."""

@@ -51,8 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-roi-margin", type=int, default=None, metavar="PX",
                    help="depth only in the previous frame's tissue box grown by PX pixels (default 24; 0: the "
                         "whole image, as offline processing)")
-    p.add_argument("--window", type=int, default=16,
-                   help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
+    p.add_argument("--window", type=int, help="LSTM history in frames (default: the clip length the model was "
+                                             "trained on, 16 in every config); 0 carries the state forever")
     p.add_argument("--pipelined", action="store_true",
                    help="image stages of the next frame in a second thread (2 cores; one more frame of delay)")
     p.add_argument("--device", default="cpu", help="where the tracker's SIREN fit and nearest neighbours and the "
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
             options = rgbd_options(options, source.path)
         estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt, options,
                                             up=up, device=device,
-                                            window=None if args.window == 0 else args.window,
+                                            window=args.window,
                                             pipelined=args.pipelined)
         server = FoxgloveServer(args.host, args.port, record=args.record, overwrite=args.overwrite)
         print(f"serving on {server.url()} (Foxglove: Open connection, Foxglove WebSocket)", file=sys.stderr,

@@ -36,8 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack; plane for RGB-D)")
     p.add_argument("--tracker", help="point tracker (default: the one whose tracks the model was trained on, "
                                      "saved in the checkpoint; geometry for a checkpoint that does not say)")
-    p.add_argument("--window", type=int, default=16,
-                   help="LSTM history in frames (default 16, the training clip); 0 carries the state forever")
+    p.add_argument("--window", type=int, help="LSTM history in frames (default: the clip length the model was "
+                                             "trained on, 16 in every config); 0 carries the state forever")
     p.add_argument("--max-frames", type=int, help="only the first N frames")
     p.add_argument("--no-video", action="store_true", help="skip the overlay video")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
@@ -70,21 +70,25 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     args.ckpt = checkpoint_file(args.ckpt)
-    window = None if args.window == 0 else args.window
     args.device = resolve_device(args.device)
     from vfmodels.predict import prediction_tracker
 
     args.tracker, args.tracker_options = prediction_tracker(args.ckpt, args.device, args.tracker)
     if args.stream:
-        return _stream(args, window)
+        return _stream(args)
     from vfdata.processing import ProcessOptions
     from vfmodels.predict import predict_recording
 
     options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames,
                              tracker=args.tracker, tracker_options=args.tracker_options)
-    result = predict_recording(args.recording, args.ckpt, args.out, options, window=window, video=not args.no_video,
-                               progress=not args.quiet, overwrite=args.overwrite, device=args.device)
+    result = predict_recording(args.recording, args.ckpt, args.out, options, window=args.window,
+                               video=not args.no_video, progress=not args.quiet, overwrite=args.overwrite,
+                               device=args.device)
     print(f"{result.frames} frames; object frame X axis: {result.x_axis}")
+    if result.metrics is not None:
+        m = result.metrics
+        print(f"RMSE against the recording's force sensor: {m['rmse']:.3f} N (Fx {m['rmse_fx']:.3f}, Fy "
+              f"{m['rmse_fy']:.3f}, Fz {m['rmse_fz']:.3f}; the average of the three, as Table I)")
     stages = {**result.stage_fps, "force": result.force_fps}
     print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     for path in (result.force_mcap, result.plot, result.video):
@@ -93,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stream(args: argparse.Namespace, window: int | None) -> int:
+def _stream(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
@@ -118,7 +122,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
             options = rgbd_options(options, args.recording)
         estimator = StreamingForceEstimator(args.ckpt, source.camera, source.baseline_mm,
                                             recording_prompt(rec, args.recording, args.prompt), options,
-                                            up=camera_up(rec), window=window, pipelined=args.pipelined,
+                                            up=camera_up(rec), window=args.window, pipelined=args.pipelined,
                                             device=args.device)
         n, camera_frame = source.frames, source.camera_frame_id
         estimates, latencies = [], []
@@ -139,7 +143,7 @@ def _stream(args: argparse.Namespace, window: int | None) -> int:
         source.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
-                         object_frame, {"stage": "predict --stream", "window": str(window), "x_axis": x_axis,
+                         object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
                                         "object_frame_kind": kind, "camera_frame_id": camera_frame},
                          overwrite=args.overwrite, camera_frame_id=camera_frame)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}

@@ -1,0 +1,161 @@
+"""One checkpoint, one recording, every way a user runs it: the forces `vfdata experiment` scores (its
+test: `trainer.predict` over the test clips), `vfdata predict`, `vfdata predict --stream` and `vfdata live
+--record` agree to 1e-4 N wherever they define the same clip, for a model tested as `visionforce` is (the
+mean of each clip and its mirror, `symmetry_turns: 1`). Along the way: `vfdata process` and `vfdata
+predict` from the command line (docs/models.md, "What each path computes")."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from vfdata.cli import main
+from vfdata.clips.datamodule import ForceDataModule
+from vfdata.clips.spec import ClipSpec
+from vfdata.clips.tokens import clip_starts, segments
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.recording import Recording
+from vfdata.recording.derived import read_force_estimate, read_tracks
+from vfdata.sim import synthesize
+from vfmodels import ForceRegressor, SetTransformerLSTM
+from vfmodels.experiment.runner import test_predictions as experiment_test
+from vfmodels.metrics import force_metrics
+
+FRAMES = 20  # clips of 16 frames every 4: frames 0-15 and 19 are scored from the clip that ends on them
+SPEC = {"input": "tracks", "frame": "object", "features": "polar_z_disp_vel", "clip_frames": 16, "stride": 4,
+        "mirror_augment": True, "rotate_augment": True, "fps": 30.0}  # configs/visionforce.yaml's
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("parity")
+    synthesize("mini", root, seed=1, frames=FRAMES, workers=1, progress=False)
+    convert_raw_folder(root / "mini_002", root / "mini_002.mcap", options=ConvertOptions(progress=False))
+    return root
+
+
+@pytest.fixture(scope="module")
+def ckpt(root) -> Path:
+    """An untrained `visionforce`-shaped model, saved as training saves it (spec, tracker, symmetry views)."""
+    torch.manual_seed(0)
+    model = SetTransformerLSTM(in_features=12, dim=32, heads=4, inducing_points=16, lstm_hidden=64)
+    regressor = ForceRegressor(model, symmetry_turns=1)
+    regressor.set_normalisation(torch.zeros(12), torch.tensor([1, 1, 10, 1, 1, 30, 2, 2, 2, 30, 30, 30.0]),
+                                torch.tensor([0.1, -0.2, 0.5]), torch.tensor([1.0, 2.0, 0.5]))
+    checkpoint = {"state_dict": regressor.state_dict(), "hyper_parameters": dict(regressor.hparams),
+                  "datamodule_hyper_parameters": {"spec": SPEC}, "ForceDataModule": {"tracker": "klt"}}
+    regressor.on_save_checkpoint(checkpoint)
+    torch.save(checkpoint, root / "visionforce.ckpt")
+    return root / "visionforce.ckpt"
+
+
+@pytest.fixture(scope="module")
+def processed(root) -> Path:
+    cv2.setRNGSeed(0)  # the colortrack mask (GrabCut) draws from OpenCV's RNG: the same seed for every path
+    out = root / "mini_002.klt.mcap"
+    assert main(["process", str(root / "mini_002.mcap"), str(out), "--tracker", "klt", "--quiet"]) == 0
+    return out
+
+
+def test_process_from_the_command_line_writes_tracks_and_the_first_frame(processed):
+    tracks = read_tracks(processed)
+    assert tracks.metadata.values["tracker"] == "klt" and len(tracks.times_ns) == FRAMES
+    assert tracks.points_object_mm.shape == (FRAMES, 256, 3) and tracks.visible[0].mean() > 0.9
+    # tracked tissue: the points sit on the tube, a few mm to tens of mm from its axis, and move between frames
+    assert 1.0 < np.nanmedian(np.hypot(*tracks.points_object_mm[0, :, :2].T)) < 60.0
+    assert np.nanmax(np.abs(tracks.points_object_mm[-1] - tracks.points_object_mm[0])) > 0.1
+    assert cv2.imread(str(processed.with_suffix(".png"))).shape[0] > 100  # the first-frame picture
+
+
+@pytest.fixture(scope="module")
+def scored(root, ckpt, processed) -> dict[str, np.ndarray]:
+    """The experiment's test: its test-clip loader and `trainer.predict` (vfmodels.experiment.runner)."""
+    manifest = root / "parity.manifest.yaml"
+    manifest.write_text(yaml.safe_dump({"name": "parity", "root": str(root), "recordings": [
+        {"id": "mini_002", "orientation_deg": 90, "split": "test", "processed": processed.name}]}))
+    data = ForceDataModule(str(manifest), ClipSpec.from_dict(SPEC), batch_size=4, progress=False)
+    data.setup("test")
+    frames, _ = experiment_test(ForceRegressor.load(ckpt), data.test_dataloader())
+    return frames
+
+
+@pytest.fixture(scope="module")
+def predicted(root, ckpt, processed) -> tuple[Path, str]:
+    """`vfdata predict` (offline) from the command line: its force file and what it printed."""
+    cv2.setRNGSeed(0)
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        assert main(["predict", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--out", str(root / "offline"),
+                     "--no-video", "--quiet"]) == 0
+    return root / "offline" / "mini_002.force.mcap", out.getvalue()
+
+
+def test_vfdata_predict_writes_forces_and_reports_the_rmse(root, predicted, processed):
+    path, _ = predicted
+    times, force = read_force_estimate(path)
+    assert len(times) == FRAMES and np.isfinite(force).all()
+    offline = read_tracks(root / "offline" / "mini_002.predict.processed.mcap")
+    np.testing.assert_array_equal(offline.points_object_mm, read_tracks(processed).points_object_mm)
+    assert (root / "offline" / "mini_002.force.png").is_file()
+    with Recording.open(path) as rec:
+        meta = rec.metadata_records["visionforce.derived"]
+    assert meta["window"] == "16" and json.loads(meta["clip_spec"])["features"] == SPEC["features"]
+
+
+def test_every_path_gives_the_forces_the_experiment_scored(root, ckpt, scored, predicted):
+    offline_times, offline = read_force_estimate(predicted[0])
+    cv2.setRNGSeed(0)
+    assert main(["predict", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--out", str(root / "stream"),
+                 "--stream", "--quiet"]) == 0
+    paths = {"vfdata predict --stream": read_force_estimate(root / "stream" / "mini_002.force.mcap")}
+    if _has_foxglove():
+        from vfmodels.commands import live
+
+        parser = argparse.ArgumentParser()
+        live.register(parser.add_subparsers())
+        cv2.setRNGSeed(0)
+        record = root / "live.mcap"
+        # the whole image's depth, as offline (the live default's region of interest is a measured trade)
+        assert live.run(parser.parse_args(["live", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--port", "0",
+                                           "--speed", "0", "--depth-roi-margin", "0", "--record", str(record),
+                                           "--quiet"])) == 0
+        paths["vfdata live --record"] = read_force_estimate(record)
+    for name, (times, force) in paths.items():
+        np.testing.assert_array_equal(times, offline_times, err_msg=name)
+        np.testing.assert_allclose(force, offline, rtol=0, atol=1e-4, err_msg=name)
+
+    # The test scores each frame once, from the clip it ends latest in; `vfdata predict` runs the latest
+    # 16 frames ending at it. Where those are the same clip, the forces are the same.
+    np.testing.assert_array_equal(scored["frame_time_ns"], offline_times)
+    same = scored_clip_starts(offline_times, 16, 4) == np.maximum(0, np.arange(FRAMES) - 15)
+    assert same.sum() == 17 and not same[16:19].any()
+    np.testing.assert_allclose(offline[same], scored["pred"][same], rtol=0, atol=1e-4)
+    # elsewhere the test's clip is shorter: close, not equal
+    assert 0 < np.abs(offline[~same] - scored["pred"][~same]).max() < 0.5
+    # and the RMSE `vfdata predict` prints is its forces' against the sensor, as the experiment's metric
+    assert f"{force_metrics(offline, scored['true'])['rmse']:.3f} N" in predicted[1]
+
+
+def scored_clip_starts(times_ns: np.ndarray, clip_frames: int, stride: int) -> np.ndarray:
+    """Per frame, the first frame of the clip the test scores it from (`latest_clip_frames`: the clip in
+    which it has the latest position)."""
+    out = np.full(len(times_ns), -1, dtype=np.int64)
+    for start in clip_starts(segments(times_ns), clip_frames, stride)[::-1]:  # the smallest start wins
+        out[start:start + clip_frames] = start
+    return out
+
+
+def _has_foxglove() -> bool:
+    try:
+        import foxglove  # noqa: F401
+    except ImportError:
+        return False
+    return True
