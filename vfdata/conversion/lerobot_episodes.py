@@ -106,6 +106,11 @@ def read_tables(ds: DatasetFolder, episode: Episode, choice: FeatureChoice) -> E
     else:
         if not np.isfinite(video_s).all():
             raise InputError(path, f"{what}: timestamp holds NaN or inf")
+        steps = np.diff(video_s)
+        if (steps <= 0).any():
+            k = int(np.argmax(steps <= 0)) + 1
+            raise InputError(path, f"{what}: timestamp of row {k} ({video_s[k]:.6f} s) does not come after the row "
+                                   f"before ({video_s[k - 1]:.6f} s)")
         frame_ns = np.rint(video_s * 1e9).astype(np.int64)
     _check_stamps(path, what, frame_ns, choice.stamp or "timestamp")
     frame_id = _sensor_frame(ds.features[choice.force])
