@@ -143,11 +143,17 @@ def test_one_episode_converts_to_one_file_and_the_cli_says_what_to_give(tmp_path
 def test_splits_and_meta_from_the_command_line_reach_the_manifest(tmp_path, capsys):
     root = write_dataset(tmp_path / "ds", episodes=3)
     assert main(["convert", str(root), str(tmp_path / "out"), "--splits", "train=0:1,val=1:2,test=2:3",
-                 "--meta", "orientation_deg=90", "--meta", "prompt=box:1,1,30,30", "--quiet"]) == 0
+                 "--meta", "orientation_deg=90", "--meta", "prompt=box:1,1,30,30", "--meta", "2:orientation_deg=180",
+                 "--meta", "1-2:prompt_box=2,2,20,20", "--quiet"]) == 0
     assert "note:" not in capsys.readouterr().out
     entries = load_manifest(tmp_path / "out" / "ds.manifest.yaml").entries
     assert [e.split for e in entries] == ["train", "val", "test"]
-    assert {e.orientation_deg for e in entries} == {90.0} and {e.prompt for e in entries} == {"box:1,1,30,30"}
+    assert [e.orientation_deg for e in entries] == [90.0, 90.0, 180.0]
+    assert [e.prompt for e in entries] == ["box:1,1,30,30"] * 3  # prompt= wins over prompt_box=, as in process
+    with Recording.open(entries[2].mcap) as rec:
+        assert rec.metadata.extra["prompt_box"] == "2,2,20,20"
+    assert main(["convert", str(root), str(tmp_path / "out2"), "--meta", "5:tissue=x", "--quiet"]) == 1
+    assert "--meta: names episode 5, which the dataset does not have" in capsys.readouterr().err
     with pytest.raises(InputError, match="not SPLIT=START:STOP"):
         parse_splits(["train=3:1"])
 

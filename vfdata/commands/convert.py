@@ -42,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "pose's frame), orientation_deg=DEG, tissue=NAME, prompt=box:x0,y0,x1,y1 (or points:x,y;...), "
                         "sensor_to_object=xyz_deg:RX,RY,RZ (or 9 numbers: the force sensor's frame turned into the "
                         "object frame), id=, split=, any other key; replaces meta.yaml's. For an RGB-D folder, "
-                        "also the path of the meta.yaml to use when it is not in the folder")
+                        "also the path of the meta.yaml to use when it is not in the folder. For a LeRobot dataset, "
+                        "N:KEY=VALUE (or A-B:KEY=VALUE) sets a key for episode N (A to B) only")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--skip-existing", action="store_true",
                    help="keep an existing output and exit 0 (outputs are only ever complete: re-run a loop "
@@ -98,14 +99,21 @@ def run(args: argparse.Namespace) -> int:
 
 def _convert_lerobot(args: argparse.Namespace, options: ConvertOptions) -> int:
     # pyarrow and PyAV (the `lerobot` extra) only when a LeRobot dataset is converted
-    from vfdata.conversion.lerobot_dataset import convert_lerobot_dataset, manifest_note, parse_splits
+    from vfdata.conversion.lerobot_dataset import (
+        convert_lerobot_dataset,
+        episode_meta_pairs,
+        manifest_note,
+        parse_splits,
+    )
     from vfdata.conversion.lerobot_episodes import convert_lerobot_episode
     from vfdata.lerobot.features import parse_topics
 
     files = [m for m in args.meta if "=" not in m]
     if files:
         raise InputError(files[0], "--meta takes KEY=VALUE for a LeRobot dataset")
-    meta = parse_meta_pairs(args.meta)
+    common, scoped = episode_meta_pairs(args.meta)
+    meta = parse_meta_pairs(common)
+    episode_meta = {episode: parse_meta_pairs(pairs) for episode, pairs in scoped.items()}
     topics = parse_topics(args.topics)
     bag_only = [name for name, value in (("--left-info-topic", args.left_info_topic),
                                          ("--right-info-topic", args.right_info_topic),
@@ -132,11 +140,13 @@ def _convert_lerobot(args: argparse.Namespace, options: ConvertOptions) -> int:
                                            "a folder (not .mcap) for all of them")
             episode = episodes[0].index
         out = convert_lerobot_episode(args.src, episode, args.out, overwrite=args.overwrite, options=options,
-                                      topics=topics, calibration=args.calibration, meta=meta)
+                                      topics=topics, calibration=args.calibration,
+                                      meta={**meta, **episode_meta.get(episode, {})})
         print(f"wrote {out}")
         return 0
     manifest = convert_lerobot_dataset(args.src, args.out, overwrite=args.overwrite, options=options, topics=topics,
-                                       calibration=args.calibration, meta=meta, splits=parse_splits(args.splits))
+                                       calibration=args.calibration, meta=meta, splits=parse_splits(args.splits),
+                                       episode_meta=episode_meta)
     print(f"wrote {args.out} (manifest {manifest})")
     note = manifest_note(manifest)
     if note:

@@ -42,18 +42,39 @@ def parse_splits(items: list[str], where: str = "--splits") -> dict[str, str]:
     return splits
 
 
+def episode_meta_pairs(items: list[str]) -> tuple[list[str], dict[int, list[str]]]:
+    """`--meta` items split into those for every episode and those for some: `N:KEY=VALUE` (episode N)
+    or `A-B:KEY=VALUE` (episodes A to B, both included)."""
+    common: list[str] = []
+    scoped: dict[int, list[str]] = {}
+    for item in items:
+        head, colon, rest = item.partition(":")
+        first, dash, last = head.partition("-")
+        if colon and "=" in rest and first.isdigit() and (not dash or last.isdigit()) and "=" not in head:
+            for episode in range(int(first), int(last if dash else first) + 1):
+                scoped.setdefault(episode, []).append(rest)
+        else:
+            common.append(item)
+    return common, scoped
+
+
 def convert_lerobot_dataset(src: str | Path, out_dir: str | Path, overwrite: bool = False,
                             options: ConvertOptions | None = None, topics: dict[str, str] | None = None,
                             calibration: str | Path | None = None, meta: dict | None = None,
-                            splits: dict[str, str] | None = None) -> Path:
+                            splits: dict[str, str] | None = None, episode_meta: dict[int, dict] | None = None,
+                            ) -> Path:
     """Convert every episode of the LeRobot dataset at `src` into `out_dir` (created) as `<id>.mcap`,
-    with `<dataset name>.manifest.yaml` listing them. Returns the manifest's path."""
+    with `<dataset name>.manifest.yaml` listing them. `meta`: metadata keys for every episode,
+    `episode_meta`: for some ({episode: {key: value}}, `--meta N:KEY=VALUE`). Returns the manifest's path."""
     options = options or ConvertOptions()
     src, out_dir = Path(src), Path(out_dir)
     ds = read_dataset(src)
     if splits:
         ds = dataclasses.replace(ds, splits=splits)
     choose_features(ds, topics)  # a dataset without a view or a force fails here, before any decoding
+    unknown = sorted(set(episode_meta or {}) - {e.index for e in ds.episodes})
+    if unknown:
+        raise InputError("--meta", f"names episode {unknown[0]}, which the dataset does not have")
     inputs = [src, *([calibration] if calibration else [])]
     check_output(out_dir, overwrite, inputs=inputs)
     inner = dataclasses.replace(options, progress=False)
@@ -62,9 +83,10 @@ def convert_lerobot_dataset(src: str | Path, out_dir: str | Path, overwrite: boo
         entries = []
         for episode in tqdm(ds.episodes, desc=f"convert {ds.name}", unit="episode", disable=not options.progress):
             part = tmp / f".episode_{episode.index:06d}.mcap"
+            given = {**(meta or {}), **(episode_meta or {}).get(episode.index, {})}
             convert_lerobot_episode(src, episode.index, part, options=inner, topics=topics, calibration=calibration,
-                                    meta=meta, dataset=ds)
-            entries.append(_entry(ds, episode.index, part, tmp, src, topics, calibration, meta or {}))
+                                    meta=given, dataset=ds)
+            entries.append(_entry(ds, episode.index, part, tmp, src, topics, calibration, given))
         ids = [e.id for e in entries]
         if len(set(ids)) != len(ids):
             twice = next(i for i in ids if ids.count(i) > 1)
@@ -87,8 +109,12 @@ def _entry(ds: DatasetFolder, index: int, mcap: Path, folder: Path, src: Path, t
                                        "with --episode N)")
     split = meta.split if meta.split in SPLITS else "train"
     recording_meta = {k: given[k] for k in RECORDING_META_KEYS if k in given} or None
+    prompt = given.get("prompt")
+    if prompt is None and given.get("prompt_box") is not None:  # a prompt a manifest entry can carry
+        box = given["prompt_box"]
+        prompt = "box:" + (box if isinstance(box, str) else ",".join(f"{v:g}" for v in box))
     return ManifestEntry(rid, meta.orientation_deg, split, src.resolve(), folder / f"{rid}.mcap",
-                         folder / f"{rid}{DERIVED_SUFFIX}", prompt=given.get("prompt"),
+                         folder / f"{rid}{DERIVED_SUFFIX}", prompt=prompt,
                          calibration=Path(calibration).resolve() if calibration else None,
                          recording_meta=recording_meta, topics=dict(topics) if topics else None, episode=index)
 
