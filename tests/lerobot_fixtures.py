@@ -48,7 +48,7 @@ def _list(values: np.ndarray) -> pa.Array:
     return pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
 
 
-def _mp4(path: Path, images: list[np.ndarray]) -> None:
+def write_mp4(path: Path, images: list[np.ndarray]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with av.open(str(path), "w") as container:
         stream = container.add_stream("libx264", rate=FPS, options={"crf": "10", "g": "2"})
@@ -126,7 +126,7 @@ def write_dataset(root: Path, version: str = "v3.0", episodes: int = 2, frames: 
         (root / "data" / "chunk-000").mkdir(parents=True)
         pq.write_table(pa.concat_tables(tables), root / "data" / "chunk-000" / "file-000.parquet")
         for key, clips in videos.items():
-            _mp4(root / "videos" / key / "chunk-000" / "file-000.mp4", [im for clip in clips for im in clip])
+            write_mp4(root / "videos" / key / "chunk-000" / "file-000.mp4", [im for clip in clips for im in clip])
         records = []
         for e in range(episodes):
             record = {"episode_index": e, "tasks": ["press"], "length": frames, "data/chunk_index": 0,
@@ -143,7 +143,7 @@ def write_dataset(root: Path, version: str = "v3.0", episodes: int = 2, frames: 
         for e, table in enumerate(tables):
             pq.write_table(table, root / "data" / "chunk-000" / f"episode_{e:06d}.parquet")
             for key in cameras:
-                _mp4(root / "videos" / "chunk-000" / key / f"episode_{e:06d}.mp4", videos[key][e])
+                write_mp4(root / "videos" / "chunk-000" / key / f"episode_{e:06d}.mp4", videos[key][e])
         (root / "meta" / "episodes.jsonl").write_text("".join(
             json.dumps({"episode_index": e, "tasks": ["press"], "length": frames}) + "\n" for e in range(episodes)))
         (root / "meta" / "tasks.jsonl").write_text(json.dumps({"task_index": 0, "task": "press"}) + "\n")

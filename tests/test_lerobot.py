@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
-from lerobot_fixtures import FPS, _mp4, calibration, force, image, level, write_dataset
+from lerobot_fixtures import FPS, calibration, force, image, level, write_dataset, write_mp4
 from rawfixtures import make_raw
 
 from vfdata.cli import main
@@ -28,7 +29,9 @@ from vfdata.lerobot.folder import read_dataset
 from vfdata.lerobot.video import psnr_db
 from vfdata.lerobot.windows import pack_windows, unpack_windows, window_length
 from vfdata.manifest import load_manifest
+from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording
+from vfdata.recording.derived import DerivedWriter, write_force_estimate
 from vfdata.recording.inspect import check_file
 from vfmodels.experiment.prepare import convert as prepare_convert
 
@@ -234,7 +237,7 @@ def _damage(root: Path, damage: str) -> None:
         payload = bytearray(video.read_bytes())
         video.write_bytes(bytes(payload[: len(payload) // 2]))
     elif damage == "short_video":
-        _mp4(root / "videos" / "observation.images.left" / "chunk-000" / "file-000.mp4",
+        write_mp4(root / "videos" / "observation.images.left" / "chunk-000" / "file-000.mp4",
              [image(e, k) for e in range(2) for k in range(8)][:12])
     elif damage == "no_video":
         (root / "videos" / "observation.images.left" / "chunk-000" / "file-000.mp4").unlink()
@@ -319,3 +322,38 @@ def test_a_failed_export_leaves_nothing_and_recordings_are_untouched(tmp_path, r
     assert main(["export", "--lerobot", *map(str, recordings), str(tmp_path / "ds"), "--overwrite", "--quiet"]) == 0
     with pytest.raises(InputError, match="not found: the tracks"):
         export_lerobot(recordings, tmp_path / "ds2", options=ExportOptions(tracks=".processed.mcap", **QUIET))
+
+
+def test_the_tracks_and_the_estimated_force_go_with_the_export(tmp_path, recordings):
+    frame = ObjectFrame(np.eye(3), np.array([0.0, 0.0, 80.0]), True, 1.0)
+    rng = np.random.default_rng(1)
+    written = {}
+    for path in recordings:
+        with Recording.open(path) as rec:
+            times = rec.frame_times_ns
+        points = rng.normal(size=(len(times), 5, 3)) * 10
+        visible = rng.random((len(times), 5)) > 0.3
+        with DerivedWriter(path.with_name(f"{path.stem}.t.mcap"), overwrite=True) as writer:
+            writer.object_frame(frame, int(times[0]))
+            for t, p, v in zip(times, points, visible, strict=True):
+                writer.tracks(int(t), p, v)
+            writer.close({"object_frame": json.dumps(frame.to_dict())})
+        estimate = rng.normal(size=(len(times) - 3, 3))
+        write_force_estimate(path.with_name(f"{path.stem}.e.mcap"), times[3:], estimate, frame, {}, overwrite=True)
+        written[path.stem] = (points, visible, estimate)
+    out = export_lerobot(recordings, tmp_path / "ds", options=ExportOptions(tracks=".t.mcap", estimate=".e.mcap",
+                                                                            **QUIET))
+    info = json.loads((out / "meta" / "info.json").read_text())
+    assert info["features"][names.TRACKS]["shape"] == [5, 3] and info["features"][names.FORCE_ESTIMATE]["info"] == \
+        {"frame": "tissue_object", "units": "N"}
+    table = pq.read_table(next((out / "data").glob("*/*.parquet")))
+    episode = table.column("episode_index").to_numpy()
+    for e, stem in enumerate(("r1", "r0")):  # train first
+        points, visible, estimate = written[stem]
+        rows = table.filter(pc.equal(table.column("episode_index"), e))
+        got = np.array(rows.column(names.TRACKS).to_pylist(), dtype=np.float32)
+        np.testing.assert_allclose(got, points.astype(np.float32), rtol=1e-6)
+        assert np.array_equal(np.array(rows.column(names.TRACKS_VISIBLE).to_pylist()), visible)
+        force = np.array(rows.column(names.FORCE_ESTIMATE).to_pylist(), dtype=np.float64)
+        assert np.isnan(force[:3]).all() and np.allclose(force[3:], estimate, rtol=1e-6)
+    assert set(episode) == {0, 1}

@@ -17,10 +17,16 @@ from PIL import Image
 
 
 def table(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """force.csv or ecm_pose.csv: stamps (ns) and values."""
     with open(path) as f:
         rows = list(csv.reader(f))[1:]
-    stamps = np.array([int(r[0]) for r in rows], dtype=np.int64)
-    return stamps, np.array([[float(v) for v in r[1:]] for r in rows])
+    return np.array([int(r[0]) for r in rows], dtype=np.int64), np.array([[float(v) for v in r[1:]] for r in rows])
+
+
+def frame_stamps(path: Path) -> np.ndarray:
+    """frames.csv: frame,timestamp_ns."""
+    with open(path) as f:
+        return np.array([int(r[1]) for r in list(csv.reader(f))[1:]], dtype=np.int64)
 
 
 def main(out: str, *sources: str) -> None:
@@ -41,7 +47,7 @@ def main(out: str, *sources: str) -> None:
                                robot_type="dvrk")
     splits = {}
     for episode, (folder, split) in enumerate(folders):
-        frame_ns, _ = table(folder / "frames.csv")
+        frame_ns = frame_stamps(folder / "frames.csv")
         force_ns, wrench = table(folder / "force.csv")
         pose_ns, pose = table(folder / "ecm_pose.csv")
         force = np.stack([np.interp(frame_ns, force_ns, wrench[:, j]) for j in range(6)], axis=1)
