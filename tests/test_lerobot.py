@@ -357,3 +357,34 @@ def test_the_tracks_and_the_estimated_force_go_with_the_export(tmp_path, recordi
         force = np.array(rows.column(names.FORCE_ESTIMATE).to_pylist(), dtype=np.float64)
         assert np.isnan(force[:3]).all() and np.allclose(force[3:], estimate, rtol=1e-6)
     assert set(episode) == {0, 1}
+
+
+def test_epoch_seconds_in_the_timestamp_column_need_the_frame_index_clock(tmp_path, capsys):
+    """Open-H's dVRK converter passes the kinematics' epoch seconds as `timestamp`; in float32 they
+    collapse. The error says so, and --clock frame_index reads the frames at frame_index / fps."""
+    root = write_dataset(tmp_path / "ds", "v2.1", episodes=1)
+    data = root / "data" / "chunk-000" / "episode_000000.parquet"
+    table = pq.read_table(data)
+    epoch = pa.array((1.7e9 + np.arange(8) / FPS).astype(np.float32))
+    pq.write_table(table.set_column(table.schema.get_field_index("timestamp"), "timestamp", epoch), data)
+    assert main(["convert", str(root), str(tmp_path / "a.mcap"), "--quiet"]) == 1
+    assert "--clock frame_index times the frames by frame_index / fps" in capsys.readouterr().err
+    assert main(["convert", str(root), str(tmp_path / "a.mcap"), "--quiet", "--clock", "frame_index"]) == 0
+    with Recording.open(tmp_path / "a.mcap") as rec:
+        assert abs(float(rec.frame(7).left[:, 20:44].mean()) - level(0, 7)) < 4
+        assert rec.frame_times_ns[1] == round(1e9 / FPS)
+
+
+def test_episodes_past_the_file_size_limits_start_new_files_that_read_back(tmp_path, recordings, monkeypatch):
+    from vfdata.lerobot import writers
+
+    monkeypatch.setattr(writers, "DATA_FILE_MB", 0)
+    monkeypatch.setattr(writers, "VIDEO_FILE_MB", 0)
+    out = export_lerobot(recordings, tmp_path / "ds", options=ExportOptions(**QUIET))
+    assert sorted(p.name for p in (out / "data" / "chunk-000").iterdir()) == ["file-000.parquet", "file-001.parquet"]
+    assert len(list((out / "videos" / names.LEFT / "chunk-000").iterdir())) == 2
+    manifest = convert_lerobot_dataset(out, tmp_path / "back", options=_options())
+    for entry in load_manifest(manifest).entries:
+        with Recording.open(entry.mcap) as b, Recording.open(next(p for p in recordings if p.stem == entry.id)) as a:
+            assert np.array_equal(a.frame_times_ns, b.frame_times_ns)
+            assert psnr_db(a.frame(11).left, b.frame(11).left) > 25

@@ -55,6 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--topics", action="append", default=[], metavar="KEY=FEATURE,...",
                    help="the features to read, as a manifest's topics: left, right (a stereo pair), color, depth "
                         "(RGB-D), force, pose (pose=none: leave it out); default: found by name (docs/lerobot.md)")
+    g.add_argument("--clock", choices=["timestamp", "frame_index"], default="timestamp",
+                   help="the frames' times: the timestamp column (default), or frame_index / fps when it holds "
+                        "something else (exports of ours keep exact stamps and ignore this)")
     g.add_argument("--splits", action="append", default=[], metavar="SPLIT=START:STOP,...",
                    help="episodes of each split for the manifest (train, val, test), instead of info.json's splits")
     p.set_defaults(func=run)
@@ -72,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
     )
     if is_lerobot_dataset(args.src):
         return _convert_lerobot(args, options)
-    if args.episode is not None or args.topics or args.splits:
-        raise InputError(args.src, "--episode, --topics and --splits are for LeRobot datasets (a folder with "
-                                   "meta/info.json)")
+    if args.episode is not None or args.topics or args.splits or args.clock != "timestamp":
+        raise InputError(args.src, "--episode, --topics, --splits and --clock are for LeRobot datasets (a folder "
+                                   "with meta/info.json)")
     rgbd = not is_bag(args.src) and is_rgbd_folder(args.src)
     files = [Path(m) for m in args.meta if "=" not in m]
     pairs = parse_meta_pairs([m for m in args.meta if "=" in m])
@@ -141,12 +144,12 @@ def _convert_lerobot(args: argparse.Namespace, options: ConvertOptions) -> int:
             episode = episodes[0].index
         out = convert_lerobot_episode(args.src, episode, args.out, overwrite=args.overwrite, options=options,
                                       topics=topics, calibration=args.calibration,
-                                      meta={**meta, **episode_meta.get(episode, {})})
+                                      meta={**meta, **episode_meta.get(episode, {})}, clock=args.clock)
         print(f"wrote {out}")
         return 0
     manifest = convert_lerobot_dataset(args.src, args.out, overwrite=args.overwrite, options=options, topics=topics,
                                        calibration=args.calibration, meta=meta, splits=parse_splits(args.splits),
-                                       episode_meta=episode_meta)
+                                       episode_meta=episode_meta, clock=args.clock)
     print(f"wrote {args.out} (manifest {manifest})")
     note = manifest_note(manifest)
     if note:

@@ -62,7 +62,7 @@ def convert_lerobot_dataset(src: str | Path, out_dir: str | Path, overwrite: boo
                             options: ConvertOptions | None = None, topics: dict[str, str] | None = None,
                             calibration: str | Path | None = None, meta: dict | None = None,
                             splits: dict[str, str] | None = None, episode_meta: dict[int, dict] | None = None,
-                            ) -> Path:
+                            clock: str = "timestamp") -> Path:
     """Convert every episode of the LeRobot dataset at `src` into `out_dir` (created) as `<id>.mcap`,
     with `<dataset name>.manifest.yaml` listing them. `meta`: metadata keys for every episode,
     `episode_meta`: for some ({episode: {key: value}}, `--meta N:KEY=VALUE`). Returns the manifest's path."""
@@ -85,7 +85,7 @@ def convert_lerobot_dataset(src: str | Path, out_dir: str | Path, overwrite: boo
             part = tmp / f".episode_{episode.index:06d}.mcap"
             given = {**(meta or {}), **(episode_meta or {}).get(episode.index, {})}
             convert_lerobot_episode(src, episode.index, part, options=inner, topics=topics, calibration=calibration,
-                                    meta=given, dataset=ds)
+                                    meta=given, dataset=ds, clock=clock)
             entries.append(_entry(ds, episode.index, part, tmp, src, topics, calibration, given))
         ids = [e.id for e in entries]
         if len(set(ids)) != len(ids):

@@ -84,8 +84,15 @@ def calibration_path(ds: DatasetFolder, episode: int, rgbd: bool, given: Path | 
                               f"{'RGB-D ' if rgbd else ''}raw folder's {name}, docs/raw_layout.md)")
 
 
-def read_tables(ds: DatasetFolder, episode: Episode, choice: FeatureChoice) -> EpisodeTables:
-    """The episode's rows, turned into stamps and series and checked."""
+CLOCKS = ("timestamp", "frame_index")
+
+
+def read_tables(ds: DatasetFolder, episode: Episode, choice: FeatureChoice, clock: str = "timestamp",
+                ) -> EpisodeTables:
+    """The episode's rows, turned into stamps and series and checked. `clock`: where the frames'
+    times come from when the dataset has no exact stamps of ours: the `timestamp` column, or
+    `frame_index` / fps (for datasets whose `timestamp` does not hold LeRobot's clock, such as absolute
+    epoch seconds squeezed into float32)."""
     path = episode.data_file
     if episode.length == 0:
         raise InputError(path, f"episode {episode.index} has no frames")
@@ -101,6 +108,8 @@ def read_tables(ds: DatasetFolder, episode: Episode, choice: FeatureChoice) -> E
         return to_numpy(rows[name], ds.features[name]["shape"], path, name)
 
     video_s = numbers("timestamp").reshape(-1).astype(np.float64)
+    if clock == "frame_index":
+        video_s = np.arange(episode.length) / ds.fps
     if choice.stamp:
         frame_ns = numbers(choice.stamp).reshape(-1).astype(np.int64)
     else:
@@ -110,7 +119,8 @@ def read_tables(ds: DatasetFolder, episode: Episode, choice: FeatureChoice) -> E
         if (steps <= 0).any():
             k = int(np.argmax(steps <= 0)) + 1
             raise InputError(path, f"{what}: timestamp of row {k} ({video_s[k]:.6f} s) does not come after the row "
-                                   f"before ({video_s[k - 1]:.6f} s)")
+                                   f"before ({video_s[k - 1]:.6f} s); --clock frame_index times the frames by "
+                                   "frame_index / fps instead")
         frame_ns = np.rint(video_s * 1e9).astype(np.int64)
     _check_stamps(path, what, frame_ns, choice.stamp or "timestamp")
     frame_id = _sensor_frame(ds.features[choice.force])
@@ -202,10 +212,11 @@ def _json_or_text(text: str):
 def convert_lerobot_episode(src: str | Path, episode: int, out: str | Path, overwrite: bool = False,
                             options: ConvertOptions | None = None, topics: dict[str, str] | None = None,
                             calibration: str | Path | None = None, meta: dict | None = None,
-                            dataset: DatasetFolder | None = None) -> Path:
+                            dataset: DatasetFolder | None = None, clock: str = "timestamp") -> Path:
     """Convert episode `episode` of the LeRobot dataset at `src` to a recording MCAP at `out`.
     `topics`: features named (`--topics`), `calibration`: a calibration file instead of the dataset's,
-    `meta`: metadata keys that replace the episode's (`--meta KEY=VALUE`). Returns `out`."""
+    `meta`: metadata keys that replace the episode's (`--meta KEY=VALUE`), `clock`: see `read_tables`.
+    Returns `out`."""
     options = options or ConvertOptions()
     src, out = Path(src), Path(out)
     options.check_format(out)
@@ -214,7 +225,9 @@ def convert_lerobot_episode(src: str | Path, episode: int, out: str | Path, over
     ep = ds.episode(episode)
     calib_path = calibration_path(ds, episode, choice.is_rgbd, Path(calibration) if calibration else None)
     check_output(out, overwrite, inputs=[src, calib_path])
-    tables = read_tables(ds, ep, choice)
+    if clock not in CLOCKS:
+        raise InputError("--clock", f"{clock!r}: choose {' or '.join(CLOCKS)}")
+    tables = read_tables(ds, ep, choice, clock)
     check_force_covers(ep.data_file, tables.force[0], tables.frame_ns, options.force_gap_tolerance_ns)
     name = f"{ds.name} episode {episode}"
     default_id = f"{ds.name}_episode_{episode:06d}"
