@@ -261,7 +261,8 @@ def recordings(tmp_path_factory) -> list[Path]:
     for i, split in enumerate(("test", "train")):
         raw = make_raw(folder / f"r{i}", n=12, seed=i)
         (raw / "meta.yaml").write_text(f"split: {split}\norientation_deg: {90 * i}\nprompt_box: [10, 10, 100, 100]\n"
-                                       "tissue: liver\n")
+                                       "tissue: liver\nsession: 3\noperator: '007'\nwhen: 2024-05-01\nscale: 1e3\n"
+                                       "sensor_to_object: xyz_deg:0,0,90\n")
         paths.append(convert_raw_folder(raw, folder / f"r{i}.mcap", options=_options()))
     return paths
 
@@ -284,7 +285,11 @@ def test_export_then_convert_gives_back_the_stamps_forces_and_metadata_exactly(t
                    (a.force.times_ns <= a.frame_times_ns[-1])
             assert np.array_equal(a.force.times_ns[span], b.force.times_ns)
             assert np.array_equal(a.force.wrench[span], b.force.wrench)
-            assert b.metadata.extra["prompt_box"] == a.metadata.extra["prompt_box"] and b.metadata.tissue == "liver"
+            provenance = {"source", "converter", "lerobot_dataset", "lerobot_episode", "lerobot_codebase_version",
+                          "lerobot_task"}
+            assert {k: v for k, v in a.metadata.to_record().items() if k not in provenance} == \
+                {k: v for k, v in b.metadata.to_record().items() if k not in provenance}
+            assert b.metadata.extra["prompt_box"] == "[10, 10, 100, 100]" and b.metadata.tissue == "liver"
             assert min(psnr_db(a.frame(i).left, b.frame(i).left) for i in range(a.num_frames)) > 25  # blurred noise
             pa_, qa = a.ecm_pose_at(a.frame_times_ns)
             pb, qb = b.ecm_pose_at(b.frame_times_ns)

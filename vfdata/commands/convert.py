@@ -129,14 +129,21 @@ def _convert_lerobot(args: argparse.Namespace, options: ConvertOptions) -> int:
             topics[key] = value
     if bag_only:
         raise InputError(args.src, f"{bag_only[0]} is for ROS bags; a LeRobot dataset's frames are paired already")
+    from vfdata.lerobot.features import choose_features
+    from vfdata.lerobot.folder import read_dataset
+
+    choice = choose_features(read_dataset(args.src), topics)
+    if not args.quiet:
+        said = [f"{key}={getattr(choice, key)} ({choice.how[key]})" for key in ("left", "right", "depth", "color")
+                if getattr(choice, key)]
+        pose = f"pose={choice.pose} ({choice.how['pose']})" if choice.pose else f"pose: {choice.how['pose']}"
+        print(f"features: {', '.join(said)}, force={choice.force} ({choice.how['force']}), {pose}")
     single = args.episode is not None or args.out.suffix == ".mcap"
     if single:
         if args.splits:
             raise InputError("--splits", "names the splits of a manifest: convert every episode to a folder")
         episode = args.episode
         if episode is None:
-            from vfdata.lerobot.folder import read_dataset
-
             episodes = read_dataset(args.src).episodes
             if len(episodes) != 1:
                 raise InputError(args.out, f"the dataset has {len(episodes)} episodes: give --episode N for one, or "

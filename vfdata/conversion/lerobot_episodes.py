@@ -196,17 +196,14 @@ def recording_meta_values(ds: DatasetFolder, episode: Episode) -> dict:
 
 
 def _json_or_text(text: str):
-    """Metadata values are text, and JSON where they were not text (docs/format.md)."""
-    if text[:1] in "[{" or text in ("true", "false"):
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError:
-            return text
+    """A metadata value as it was before it was written: metadata holds text as it is and other values
+    as JSON (docs/format.md), so text that is JSON exactly as JSON writes it was a value, the rest text."""
     try:
-        number = float(text)
-        return number if math.isfinite(number) else text
-    except ValueError:
+        value = json.loads(text, parse_constant=lambda name: math.nan)
+    except json.JSONDecodeError:
         return text
+    plain = isinstance(value, (dict, list, bool, int, float)) and json.dumps(value) == text
+    return value if plain and "NaN" not in text else text
 
 
 def convert_lerobot_episode(src: str | Path, episode: int, out: str | Path, overwrite: bool = False,
