@@ -1,8 +1,10 @@
 """LeRobot out and back (docs/lerobot.md, "Figures"): the simulator's mini dataset exported with
 `vfdata export --lerobot` and converted back with `vfdata convert`, per video codec setting: export and
 import rates, video size per frame, the image loss (PSNR of every left frame, colour and luma, against
-the recording's own frames), whether stamps and forces come back exactly; with `--experiment`, the
-ridge variant trained on the original recordings and on the round trip.
+the recording's own frames), whether stamps and forces come back exactly; with `--experiment`, for
+the original recordings and each round trip, the KLT tracks `vfdata experiment` makes scored against
+the simulator's ground truth (what the codec's loss costs the tracking) and the ridge variant's test
+RMSE (which on mini moves with any change of the images; docs/experiments.md).
 
     python bench/bench_lerobot.py [--frames N] [--experiment] [--work DIR]
 """
@@ -29,10 +31,12 @@ from vfdata.conversion.options import ConvertOptions  # noqa: E402
 from vfdata.conversion.raw_folder import convert_raw_folder  # noqa: E402
 from vfdata.lerobot.export import ExportOptions, export_lerobot  # noqa: E402
 from vfdata.lerobot.video import psnr_db  # noqa: E402
+from vfdata.manifest import load_manifest  # noqa: E402
 from vfdata.recording import Recording  # noqa: E402
 from vfdata.sim.synthesize import synthesize  # noqa: E402
 
-SETTINGS = [("av1", 20, "default"), ("av1", 30, "LeRobot's default crf"), ("h264", 18, "")]
+SETTINGS = [("av1", 20, "default"), ("av1", 30, "LeRobot's default crf"), ("av1", 10, ""), ("h264", 18, ""),
+            ("h264", 8, "")]
 
 
 def quiet(fn, *args, **kwargs):
@@ -54,11 +58,21 @@ def compare(original: Path, back: Path) -> dict:
         return {"colour": colour, "luma": luma, "exact": exact, "left_out": int((~span).sum())}
 
 
-def ridge_rmse(manifest: Path, out: Path) -> float:
-    quiet(vfdata, ["experiment", str(manifest), "--out", str(out), "--variants", "ridge", "--seeds", "1"])
+def ridge_and_tracking(manifest: Path, out: Path, ground_truth: Path) -> tuple[float, float, float]:
+    """The ridge's test RMSE (N) and the KLT tracks' error against ground truth (median and 95th
+    percentile over every tracked point of the recordings, mm; mean over recordings)."""
     import json
 
-    return json.loads((out / "runs" / "ridge" / "seed0" / "metrics.json").read_text())["pooled"]["rmse"]
+    from vfmodels.experiment.report import tracking_quality
+
+    quiet(vfdata, ["experiment", str(manifest), "--out", str(out), "--variants", "ridge", "--seeds", "1"])
+    rmse = json.loads((out / "runs" / "ridge" / "seed0" / "metrics.json").read_text())["pooled"]["rmse"]
+    errors = []
+    for entry in load_manifest(manifest).entries:
+        klt = entry.mcap.with_name(f"{entry.id}.klt.mcap")
+        errors.append(tracking_quality(klt, entry.mcap, ground_truth / entry.id / "ground_truth")["error"])
+    return (rmse, float(np.mean([e["full_median_mm"] for e in errors])),
+            float(np.mean([e["full_p95_mm"] for e in errors])))
 
 
 def main() -> None:
@@ -82,7 +96,7 @@ def main() -> None:
     print("| video | export frames/s | KB per frame and view | import frames/s | PSNR colour mean / min (dB) "
           "| PSNR luma mean / min (dB) | stamps and forces exact |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | --- |")
-    back_manifest = None
+    manifests = {"original (JPEG 95)": mini / "mini.manifest.yaml"}
     for codec, crf, note in SETTINGS:
         name = f"{codec}_crf{crf}"
         dataset, back = work / name, work / f"{name}_back"
@@ -101,17 +115,19 @@ def main() -> None:
         label = f"{codec} crf {crf}" + (f" ({note})" if note else "")
         print(f"| {label} | {frames / exported:.0f} | {size:.1f} | {frames / imported:.0f} | "
               f"{colour.mean():.2f} / {colour.min():.2f} | {luma.mean():.2f} / {luma.min():.2f} | {exact} |")
-        if (codec, crf) == SETTINGS[0][:2]:
-            back_manifest = manifest
-            left_out = sum(f["left_out"] for f in found)
+        manifests[label] = manifest
+        left_out = sum(f["left_out"] for f in found)
     print(f"force samples outside the video span (before one frame period ahead of the first frame, after the "
           f"last frame), not exported: {left_out}")
     print("(import written as PNG, so that the PSNR is the video codec's alone; the recordings' own frames are "
           "JPEG 95)")
     if args.experiment:
-        original = ridge_rmse(mini / "mini.manifest.yaml", work / "ridge_original")
-        round_trip = ridge_rmse(back_manifest, work / "ridge_round_trip")
-        print(f"ridge, test RMSE (N): original recordings {original:.4f}, after LeRobot and back {round_trip:.4f}")
+        print()
+        print("| images | KLT tracking error median / p95 (mm) | ridge test RMSE (N) |")
+        print("| --- | ---: | ---: |")
+        for i, (label, manifest) in enumerate(manifests.items()):
+            rmse, median, p95 = ridge_and_tracking(manifest, work / f"ridge_{i}", mini)
+            print(f"| {label} | {median:.3f} / {p95:.2f} | {rmse:.2f} |")
 
 
 if __name__ == "__main__":
