@@ -393,3 +393,13 @@ def test_episodes_past_the_file_size_limits_start_new_files_that_read_back(tmp_p
         with Recording.open(entry.mcap) as b, Recording.open(next(p for p in recordings if p.stem == entry.id)) as a:
             assert np.array_equal(a.frame_times_ns, b.frame_times_ns)
             assert psnr_db(a.frame(11).left, b.frame(11).left) > 25
+
+
+def test_the_export_command_says_what_it_cannot_take(tmp_path, recordings, capsys):
+    assert main(["export", "--lerobot", str(recordings[0]), str(tmp_path / "x.mcap")]) == 1
+    assert "the last path is the output dataset folder" in capsys.readouterr().err
+    assert main(["export", "--lerobot", "--tracks", str(recordings[0]), str(recordings[1]), str(tmp_path / "o")]) == 1
+    assert "is not a suffix such as .klt.mcap: give the option after the paths" in capsys.readouterr().err
+    assert main(["export", "--lerobot", str(recordings[0]), str(tmp_path / "o"), "--crf", "99"]) == 1
+    assert "--crf: must be 0-63" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -52,6 +52,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(out, "the last path is the output dataset folder, not a recording")
     if skip_existing(args, out):
         return 0
+    for option, suffix in (("--tracks", args.tracks), ("--estimate", args.estimate)):
+        if suffix is not None and (not suffix.startswith(".") or "/" in suffix):
+            # `--tracks a.mcap b.mcap OUT` would take a.mcap as the suffix: say how to write it instead
+            raise InputError(option, f"{suffix!r} is not a suffix such as .klt.mcap: give the option after the paths, "
+                                     f"or as {option}=SUFFIX")
     if args.crf is not None and not 0 <= args.crf <= 63:
         raise InputError("--crf", f"must be 0-63, not {args.crf}")
     if args.gop < 1:
