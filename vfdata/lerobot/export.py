@@ -12,6 +12,7 @@ end); recordings are only read."""
 
 from __future__ import annotations
 
+import copy
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,7 +107,7 @@ def feature_set(shared: Plan, sources: list[Source], options: ExportOptions) -> 
     force_info = {"units": names.FORCE_UNITS, **({"sensor": frame_ids.pop()} if len(frame_ids) == 1 else {})}
     fts = list(names.FORCE_NAMES)
     features = {
-        names.LEFT: video, names.RIGHT: json.loads(json.dumps(video)),
+        names.LEFT: video, names.RIGHT: copy.deepcopy(video),
         names.FORCE: {"dtype": "float32", "shape": [6], "names": fts, "info": force_info},
         names.SAMPLES: {"dtype": "float64", "shape": [shared.window, 6], "names": None,
                         "info": {"rows": "samples since the previous frame, oldest first", "columns": fts,
