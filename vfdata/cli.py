@@ -23,6 +23,7 @@ from vfdata.errors import Terminated, VisionForceError
 # Order is the order shown in --help; the entry-point commands follow.
 COMMANDS = [
     "convert",
+    "export",
     "info",
     "check",
     "process",

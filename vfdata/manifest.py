@@ -17,6 +17,10 @@ recordings:
     tissue: glove         #   up in the ECM pose's frame, the tissue, the force sensor's frame turned
     sensor_to_object: xyz_deg:0,0,90   # into the object's; with orientation_deg and prompt
     topics: {left: /cam/left/image_raw, right: /cam/right/image_raw, force: /ati/wrench}   # a bag's
+  - id: lab_ep3           # an episode of a LeRobot dataset (docs/lerobot.md): raw: names the dataset
+    raw: ../lerobot/lab   #   folder, episode: its index, topics: its features (left, right, color,
+    episode: 3            #   depth, force, pose)
+    split: test
 ```
 
 Entries that name one recording (the same `mcap:`) split it in time: each needs `frames:`, and
@@ -42,7 +46,7 @@ Split = Literal["train", "val", "test"]
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 DERIVED_SUFFIX = ".processed.mcap"
 RECORDING_META_KEYS = ("gravity_up", "tissue", "sensor_to_object")  # entry keys given to the conversion
-TOPIC_KEYS = ("left", "right", "left_info", "right_info", "force", "pose")
+TOPIC_KEYS = ("left", "right", "left_info", "right_info", "force", "pose", "color", "depth")  # color, depth: LeRobot
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,7 @@ class ManifestEntry:
     # gravity_up, tissue, sensor_to_object (docs/bags.md); orientation_deg and prompt go with them.
     recording_meta: dict | None = None
     topics: dict | None = None  # a bag's topics: left, right, left_info, right_info, force, pose
+    episode: int | None = None  # raw is a LeRobot dataset: this episode of it
 
     def conversion_meta(self) -> dict:
         """The metadata keys a conversion of this entry's raw recording is given."""
@@ -135,10 +140,15 @@ def _entry(path: Path, root: Path, item) -> ManifestEntry:
     if topics is not None and (not isinstance(topics, dict) or not set(topics) <= set(TOPIC_KEYS)
                                or not all(isinstance(v, str) for v in topics.values())):
         raise InputError(path, f"recording '{rid}': topics must map some of {', '.join(TOPIC_KEYS)} to topic names")
+    episode = item.get("episode")
+    if episode is not None and (isinstance(episode, bool) or not isinstance(episode, int) or episode < 0):
+        raise InputError(path, f"recording '{rid}': episode must be a LeRobot episode index (0, 1, ...), not "
+                               f"{episode!r}")
     return ManifestEntry(
         rid, orientation, item["split"], _under(root, item.get("raw", rid)),
         _under(root, item.get("mcap", f"{rid}.mcap")), _under(root, item.get("processed", f"{rid}{DERIVED_SUFFIX}")),
         _frames(path, rid, item.get("frames")), prompt, **extra, recording_meta=recording_meta, topics=topics,
+        episode=episode,
     )
 
 
@@ -187,26 +197,35 @@ def load_manifest(path: str | Path) -> Manifest:
     return Manifest(str(data.get("name", path.stem.removesuffix(".manifest"))), path.resolve(), entries)
 
 
-def write_manifest(path: str | Path, name: str, entries: list[ManifestEntry]) -> Path:
-    """A manifest with absolute paths (so it can live anywhere), e.g. one per tracker's derived files."""
+def write_manifest(path: str | Path, name: str, entries: list[ManifestEntry], relative_to: Path | None = None) -> Path:
+    """A manifest with absolute paths (so it can live anywhere), e.g. one per tracker's derived files;
+    with `relative_to`, paths relative to that folder (`root: .`: the manifest moves with its folder,
+    which must be where it is written, or one that will be renamed to it)."""
     path = Path(path)
+
+    def where(p: Path) -> str:
+        return str(p) if relative_to is None else os.path.relpath(p, relative_to)
+
     recordings = []
     for e in entries:
-        item = {"id": e.id, "orientation_deg": e.orientation_deg, "split": e.split, "raw": str(e.raw),
-                "mcap": str(e.mcap), "processed": str(e.processed)}
+        item = {"id": e.id, "orientation_deg": e.orientation_deg, "split": e.split, "raw": where(e.raw),
+                "mcap": where(e.mcap), "processed": where(e.processed)}
+        if e.episode is not None:
+            item["episode"] = e.episode
         if e.frames is not None:
             item["frames"] = list(e.frames)
         if e.prompt is not None:
             item["prompt"] = e.prompt
         for key in ("calibration", "meta"):
             if getattr(e, key) is not None:
-                item[key] = str(getattr(e, key))
+                item[key] = where(getattr(e, key))
         item.update(e.recording_meta or {})
         if e.topics:
             item["topics"] = dict(e.topics)
         recordings.append(item)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(yaml.safe_dump({"name": name, "recordings": recordings}, sort_keys=False))
+    head = {"name": name} if relative_to is None else {"name": name, "root": "."}
+    tmp.write_text(yaml.safe_dump({**head, "recordings": recordings}, sort_keys=False))
     tmp.replace(path)
     return path

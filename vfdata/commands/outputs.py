@@ -15,7 +15,7 @@ def skip_existing(args: argparse.Namespace, *outputs: Path) -> bool:
         return False
     if args.overwrite:
         raise VisionForceError("--skip-existing and --overwrite contradict each other: choose one")
-    if all(Path(p).is_file() for p in outputs):
+    if all(Path(p).is_file() or Path(p).is_dir() for p in outputs):
         print(f"kept {outputs[0]} (exists; --skip-existing)")
         return True
     return False

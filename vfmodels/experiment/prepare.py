@@ -18,6 +18,7 @@ from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
 from vfdata.device import shared_device_options
 from vfdata.errors import InputError
 from vfdata.executor import run_jobs
+from vfdata.lerobot.folder import is_lerobot_dataset
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording
@@ -45,14 +46,24 @@ def derived_path(entry: ManifestEntry, tracker: str) -> Path:
 
 
 def convert(entry: ManifestEntry, progress: bool = False) -> None:
-    """`<id>.mcap` from the entry's raw folder (stereo or RGB-D) or bag, unless it exists."""
+    """`<id>.mcap` from the entry's raw folder (stereo or RGB-D), bag or LeRobot episode, unless it exists."""
     if entry.mcap.is_file():
         return
     if not entry.raw.exists():
         raise InputError(entry.raw, f"recording {entry.id}: neither the raw folder or bag nor {entry.mcap.name} "
                                     "exists (for simulated data run `vfdata synth --preset NAME DIR` first)")
     options = ConvertOptions(progress=progress)
-    if is_bag(entry.raw):
+    if is_lerobot_dataset(entry.raw):
+        # pyarrow and PyAV (the `lerobot` extra) only for a manifest that names a LeRobot dataset
+        from vfdata.conversion.lerobot_episodes import convert_lerobot_episode
+
+        convert_lerobot_episode(entry.raw, entry.episode or 0, entry.mcap, options=options, topics=entry.topics,
+                                calibration=entry.calibration, meta=entry.conversion_meta())
+    elif is_bag(entry.raw):
+        lerobot_keys = {"color", "depth"} & set(entry.topics or {})
+        if lerobot_keys:
+            raise InputError(entry.raw, f"recording {entry.id}: topics {', '.join(sorted(lerobot_keys))} are "
+                                        "features of a LeRobot dataset, not a bag's")
         convert_bag(entry.raw, entry.mcap, options=options, topics=BagTopics(**(entry.topics or {})),
                     calibration=entry.calibration, meta=entry.conversion_meta())
     elif is_rgbd_folder(entry.raw):
