@@ -18,6 +18,7 @@ from vfdata.manifest import load_manifest
 from vfdata.recording import Recording
 from vfmodels.experiment import report, runner
 from vfmodels.experiment.prepare import any_depth_only, derived_path, prepare
+from vfmodels.experiment.report import doubtful_markdown
 from vfmodels.experiment.ridge_run import config_spec
 from vfmodels.experiment.runner import CONFIGS
 from vfmodels.experiment.variants import ALL_VARIANTS, PAPER_VARIANTS, VISIONFORCE_TRACKER, for_depth_only
@@ -64,7 +65,8 @@ def test_bad_manifests_are_clear_errors(tmp_path, content, problem):
 
 def test_tracker_manifest_points_at_the_tracker_files(tmp_path):
     manifest = load_manifest(write_manifest(tmp_path))
-    path = runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "klt.manifest.yaml")
+    path, doubtful = runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "klt.manifest.yaml")
+    assert doubtful == []  # no derived files yet: nothing judged
     copy = yaml.safe_load(path.read_text())
     assert copy["name"] == "toy-klt"
     assert [r["processed"] for r in copy["recordings"]] == [str(derived_path(e, "klt")) for e in manifest.entries]
@@ -72,6 +74,37 @@ def test_tracker_manifest_points_at_the_tracker_files(tmp_path):
     # Re-read through the same reader: absolute paths survive the move.
     again = load_manifest(path)
     assert [e.mcap for e in again] == [e.mcap for e in manifest.entries]
+
+
+def _judged(entry, tracker: str, reasons: list[str]) -> None:
+    """A derived file of `entry` whose verdict (vfdata.confidence) has these reasons."""
+    from vfdata.confidence import Confidence
+    from vfdata.recording.derived import DerivedWriter
+
+    derived_path(entry, tracker).parent.mkdir(parents=True, exist_ok=True)
+    with DerivedWriter(derived_path(entry, tracker), overwrite=True) as writer:
+        writer.close({"stage": "process", "confidence": json.dumps(Confidence(reasons).to_dict())})
+
+
+def test_doubtful_training_recordings_are_left_out_unless_kept(tmp_path):
+    manifest = load_manifest(write_manifest(tmp_path))
+    train, val, test = manifest.entries
+    _judged(train, "klt", [])
+    _judged(val, "klt", ["end"])
+    _judged(test, "klt", ["axis"])
+    path, doubtful = runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "klt.manifest.yaml")
+    assert [e.split for e in load_manifest(path).entries] == ["train", "test"]
+    assert [(d["id"], d["reasons"], d["left_out"]) for d in doubtful] == [
+        (val.id, ["end"], True), (test.id, ["axis"], False)]
+    path, doubtful = runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "kept.manifest.yaml",
+                                             keep_doubtful=True)
+    assert [e.split for e in load_manifest(path).entries] == ["train", "val", "test"]
+    assert not any(d["left_out"] for d in doubtful)
+    _judged(train, "klt", ["mask_edges"])
+    with pytest.raises(InputError, match="--keep-doubtful"):
+        runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "none.manifest.yaml")
+    md = doubtful_markdown(doubtful)
+    assert f"| {val.id} | val | klt | end | no |" in md
 
 
 def test_missing_recording_names_the_fix(tmp_path):

@@ -11,7 +11,7 @@ from recon_fixtures import random_rotation, tapered_tube
 
 from vfdata.errors import InputError
 from vfdata.recon import ObjectFrame, estimate_object_frame, up_in_camera
-from vfdata.recon.object_frame import hemisphere_directions
+from vfdata.recon.tube_axis import hemisphere_directions
 
 
 def _angle_deg(a, b):
@@ -169,7 +169,9 @@ def _occluder_band(rng, rotation, n, length=60.0, r_wide=10.0, distance=120.0, r
 
 @pytest.mark.parametrize("seed", [2, 3, 4])
 def test_cross_check_recovers_the_axis_an_occluder_band_turned(seed):
-    from vfdata.recon.object_frame import cross_checked_frame
+    """The band stays in the metal-free cloud (an occluder not grey enough to be seen as metal); its frontal
+    part, without the band, disagrees by more than the switch and is taken."""
+    from vfdata.recon.tissue_frame import AXIS_CHECK_DEG, checked_axis
 
     rng = np.random.default_rng(seed)
     rotation = _side_view_rotation(rng)
@@ -177,24 +179,23 @@ def test_cross_check_recovers_the_axis_an_occluder_band_turned(seed):
     cloud = np.vstack([tube, _occluder_band(rng, rotation, 1000)])
     true_z = rotation[:, 2]
     assert _angle_deg(estimate_object_frame(cloud).z_axis, true_z) > 15.0, "the band must turn the plain fit"
-    frame = cross_checked_frame(cloud, tube)
-    assert _angle_deg(frame.z_axis, true_z) < 3.0 and frame.z_axis @ true_z > 0
-    assert frame.diagnostics["axis_from"] == "frontal" and frame.diagnostics["axis_check_deg"] > 15.0
+    axis, diagnostics = checked_axis(cloud, cloud, tube)
+    assert _angle_deg(axis.direction, true_z) < 3.0
+    assert diagnostics["axis_from"] == "frontal" and diagnostics["axis_check_deg"] > AXIS_CHECK_DEG
 
 
-def test_cross_check_keeps_the_full_cloud_when_both_agree_or_the_frontal_part_is_too_small():
-    from vfdata.recon.object_frame import cross_checked_frame
+def test_the_metal_free_cloud_gives_the_axis_and_the_whole_cloud_is_only_a_fallback():
+    from vfdata.recon.tissue_frame import checked_axis
 
-    rng = np.random.default_rng(5)
-    tube = tapered_tube(rng, _side_view_rotation(rng))
-    plain = estimate_object_frame(tube)
-    frame = cross_checked_frame(tube, tube[::2])
-    np.testing.assert_allclose(frame.rotation, plain.rotation)
-    np.testing.assert_allclose(frame.origin, plain.origin)
-    assert frame.diagnostics["axis_from"] == "cloud"
-    again = cross_checked_frame(tube, tube[:10])  # too few frontal points to fit: no check
-    np.testing.assert_allclose(again.rotation, plain.rotation)
-    assert "axis_from" not in again.diagnostics
+    rng = np.random.default_rng(2)
+    rotation = _side_view_rotation(rng)
+    tube = tapered_tube(rng, rotation)
+    cloud = np.vstack([tube, _occluder_band(rng, rotation, 1000)])
+    axis, diagnostics = checked_axis(cloud, tube, tube[::2])  # the band was near metal: not in the clean cloud
+    assert _angle_deg(axis.direction, rotation[:, 2]) < 3.0
+    assert diagnostics["axis_from"] == "clean" and diagnostics["axis_fits_deg"]["cloud"] > 15.0
+    axis, diagnostics = checked_axis(cloud, tube[:200], tube[:100])  # an instrument over most of the tissue
+    assert diagnostics["axis_from"] == "cloud" and "clean" not in diagnostics["axis_fits_deg"]
 
 
 def test_size_points_decide_the_wide_end():

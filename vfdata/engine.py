@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,9 +27,10 @@ import numpy as np
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError
 from vfdata.recon import Prompt, make_depth_estimator, make_segmenter, tissue_cloud
-from vfdata.recon.cloud import grazing_pixels
-from vfdata.recon.object_frame import ObjectFrame, cross_checked_frame, origin_cut_by_view
+from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view
 from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
+from vfdata.recon.tissue_frame import tissue_frame
+from vfdata.tracking.motion_scan import scan_motion
 from vfdata.tracking.registry import FrameInputs, Tracker, make_tracker
 
 log = logging.getLogger(__name__)
@@ -154,14 +155,17 @@ class FrameEngine:
     """Runs the stages frame after frame (see the module docstring). The first frame fixes the object
     frame (`self.frame`) and starts the tracker; `up` is gravity-up in the left camera frame (from the
     ECM pose; None: X from the image's up). `ground_truth` is the simulator's ground_truth/ folder,
-    for the `recorded` depth and the `groundtruth` tracker."""
+    for the `recorded` depth and the `groundtruth` tracker. `look_ahead`, when the input is a recording,
+    gives its left images from the first frame on at a stride (`vfdata.tracking.motion_scan`): the tube's
+    frame then also hears how each end moves over the recording (`vfdata.recon.tissue_frame`)."""
 
     def __init__(self, camera: PinholeCamera, baseline_mm: float, prompt: Prompt, options: EngineOptions | None = None,
-                 up: np.ndarray | None = None, ground_truth: Path | None = None):
+                 up: np.ndarray | None = None, ground_truth: Path | None = None,
+                 look_ahead: Callable[[], Iterable[np.ndarray]] | None = None):
         self.options = options or EngineOptions()
         self.camera, self.baseline_mm, self.prompt = camera, float(baseline_mm), prompt
         self.prompt.check_inside(camera.width, camera.height)
-        self.up, self.ground_truth = up, ground_truth
+        self.up, self.ground_truth, self.look_ahead = up, ground_truth, look_ahead
         if self.options.object_frame not in OBJECT_FRAMES:
             raise InputError("object frame", f"'{self.options.object_frame}' is not one of {', '.join(OBJECT_FRAMES)}")
         self.depth = None if self.options.depth == SENSOR_DEPTH else make_depth_estimator(
@@ -274,9 +278,11 @@ class FrameEngine:
         elif self.options.object_frame == "camera":
             self.frame = camera_frame()
         else:
-            frontal = tissue_cloud(first.depth_mm, first.mask & ~grazing_pixels(first.depth_mm, self.camera),
-                                   self.camera)
-            self.frame = cross_checked_frame(first.cloud_mm, frontal, self.up)
+            # A look ahead at the recording, when the caller can give one: the motion of each end (clamped_end).
+            motion = None if self.look_ahead is None else scan_motion(self.look_ahead(), first.mask,
+                                                                      first.depth_mm, self.camera)
+            self.frame = tissue_frame(first.image_bgr, first.mask, first.depth_mm, first.cloud_mm, self.camera,
+                                      self.up, motion)
         self.origin_cut = self.options.object_frame in ("auto", "tissue") and bool(
             origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
         if self.origin_cut:

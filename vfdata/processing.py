@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.atomic import atomic_output, check_output
+from vfdata.confidence import Confidence, assess, edge_support
 from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt
@@ -28,6 +29,7 @@ from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedWriter
 from vfdata.threads import DEFAULT_THREADS, thread_limit
+from vfdata.tracking.motion_scan import scan_stride
 from vfdata.tracking.registry import IMAGE_TRACKERS
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
@@ -35,6 +37,7 @@ log = logging.getLogger(__name__)
 
 TRACKERS = (*TRACKER_NAMES, "none")
 RGBD_ANCHOR = 1.0  # lambda_anchor of the geometry trackers on RGB-D recordings (rgbd_options)
+EDGE_EVERY = 15  # frames between two looks at the mask's outline (vfdata.confidence.edge_support)
 ORIGIN_CUT_WARNING = "the tissue runs out of the image at its wide end: origin maybe not at the clamp"
 
 
@@ -117,13 +120,21 @@ def prompt_text(prompt: Prompt) -> str:
 
 
 def stereo_engine(rec: Recording, src: Path, options: EngineOptions, prompt: str | None = None,
-                  ground_truth: Path | None = None) -> FrameEngine:
-    """The engine for a stereo recording: its camera, baseline, prompt and gravity-up (ECM pose)."""
+                  ground_truth: Path | None = None, frames: int | None = None) -> FrameEngine:
+    """The engine for a stereo recording: its camera, baseline, prompt and gravity-up (ECM pose), and a
+    look ahead over its first `frames` frames (default all) for the tube's frame."""
     for topic in (layout.LEFT_IMAGE, layout.RIGHT_IMAGE, layout.LEFT_INFO, layout.RIGHT_INFO):
         if not rec.has(topic):
             raise InputError(src, f"source has no {topic}: not a stereo recording")
     return FrameEngine(rec.camera, rec.stereo.baseline_mm, recording_prompt(rec, src, prompt), options,
-                       up=camera_up(rec), ground_truth=ground_truth)
+                       up=camera_up(rec), ground_truth=ground_truth, look_ahead=lambda: scan_images(rec, frames))
+
+
+def scan_images(rec: Recording, frames: int | None = None):
+    """The left images a motion scan of the first `frames` frames looks at (vfdata.tracking.motion_scan):
+    the first, then every k-th."""
+    frames = rec.num_frames if frames is None else min(frames, rec.num_frames)
+    return (rec.rectified_left(k) for k in range(0, frames, scan_stride(frames)))
 
 
 def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
@@ -217,27 +228,31 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
     check_output(out, overwrite, inputs=[src])  # before the work: the source is never replaced
     check_output(preview_path(out), True, inputs=[src])
     rec = Recording.open(src)
+    n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
     if rec.is_rgbd:
         engine = rgbd_engine(rec, src, options, options.prompt)
     else:
         if options.object_frame == "auto":
             options = replace(options, object_frame="tissue")
-        engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth))
-    n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
+        engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth),
+                               frames=n_frames)
     results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
-    preview = None
+    first = None
+    areas, supports, visibles = [], [], []  # what the verdict on the recording weighs (vfdata.confidence)
     with DerivedWriter(out, overwrite=overwrite, inputs=(src,), camera_frame_id=rec.camera_frame_id) as writer:
         bar = tqdm(total=n_frames, desc=f"process {src.name}", unit="frame", disable=not options.progress)
         for result in results:
             t = engine.clock.now()
             if result.index == 0:
                 writer.object_frame(engine.frame, result.stamp_ns)
-                preview = first_frame_preview(result.left, result.mask, rec.camera, engine.frame, result.points_mm,
-                                              engine.prompt.box, warning=ORIGIN_CUT_WARNING if engine.origin_cut
-                                              else None)
+                first = result
             writer.frame(result.stamp_ns, result.mask, result.depth_mm, engine.frame.to_object(result.cloud_mm))
             if result.points_mm is not None:
                 writer.tracks(result.stamp_ns, engine.frame.to_object(result.points_mm), result.visible)
+                visibles.append(result.visible)
+            areas.append(int(result.mask.sum()))
+            if result.index % EDGE_EVERY == 0:
+                supports.append(edge_support(result.mask, result.depth_mm))
             engine.clock.add("write", t)
             bar.update()
         bar.close()
@@ -245,7 +260,15 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
         if offline is not None:
             for i, (points, visible) in enumerate(zip(*offline, strict=True)):
                 writer.tracks(int(rec.frame_times_ns[i]), engine.frame.to_object(points), visible)
-        writer.close(_metadata(rec, src, options, engine, n_frames, threads))
+            visibles = list(offline[1])
+        confidence = assess(engine.frame.diagnostics.get("doubtful", []), np.array(areas), np.array(supports),
+                            np.array(visibles) if visibles else None)
+        if confidence.doubtful:
+            log.warning(f"warning: {src}: doubtful: {confidence.describe()}")
+        writer.close(_metadata(rec, src, options, engine, n_frames, threads, confidence))
+    preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm, engine.prompt.box,
+                                  warning=("doubtful: " + ", ".join(confidence.reasons)) if confidence.doubtful
+                                  else ORIGIN_CUT_WARNING if engine.origin_cut else None)
     # Written once the MCAP is complete; it describes that MCAP, so it replaces an older picture.
     with atomic_output(preview_path(out), overwrite=True, inputs=[src]) as tmp:
         ok, data = cv2.imencode(".png", preview)
@@ -256,7 +279,7 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
 
 
 def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameEngine, frames: int,
-              threads: int) -> dict:
+              threads: int, confidence: Confidence) -> dict:
     parameters = engine.parameters
     return {
         "stage": "process",
@@ -279,9 +302,12 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "object_frame_kind": engine.frame.kind,
         "camera_frame_id": rec.camera_frame_id,
         "origin_cut_by_view": str(engine.origin_cut).lower(),
-        # the full cloud's axis vs its frontal part's (object_frame.cross_checked_frame)
-        "object_frame_check": json.dumps({k: engine.frame.diagnostics[k] for k in ("axis_check_deg", "axis_from")
-                                          if k in engine.frame.diagnostics}),
+        # the axis fits and the clamped end's cues (vfdata.recon.tissue_frame), and the verdict (vfdata.confidence)
+        "object_frame_check": json.dumps(_jsonable({k: v for k, v in engine.frame.diagnostics.items()
+                                                    if k in ("axis_from", "axis_check_deg", "axis_fits_deg", "end",
+                                                             "doubtful")})),
+        "confidence": json.dumps(_jsonable(confidence.to_dict())),
+        "doubtful": str(confidence.doubtful).lower(),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
         "stage_threads": str(threads),

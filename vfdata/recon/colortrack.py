@@ -51,6 +51,13 @@ class ColorTrackSettings:
     grey_penalty: float = 4.0  # ... and gets this log-odds penalty (0: off); tissue is never grey
 
 
+def metal_pixels(lab: np.ndarray, max_chroma: float = ColorTrackSettings.grey_chroma) -> np.ndarray:
+    """(H, W) bool of an (H, W, 3) uint8 Lab image (OpenCV's): grey metal, as instruments and clamps are:
+    chroma under `max_chroma`, except specular highlights (near-white), which also occur on wet tissue."""
+    chroma2 = (lab[..., 1].astype(np.int32) - 128) ** 2 + (lab[..., 2].astype(np.int32) - 128) ** 2
+    return (chroma2 < max_chroma**2) & (lab[..., 0] < 235)
+
+
 class ColorTrackSegmenter(Segmenter):
     """The embedded default: colour model + flow-carried prior (see the module docstring)."""
 
@@ -96,11 +103,7 @@ class ColorTrackSegmenter(Segmenter):
         lut = self._chroma_lut
         l_bin = (lab[..., 0].astype(np.int32) * s.lightness_bins) >> 8
         bins = (l_bin * s.bins + lut[lab[..., 1]]) * s.bins + lut[lab[..., 2]]
-        # Instruments and clamps are grey metal: near-neutral chroma, except specular highlights
-        # (near-white), which also occur on wet tissue.
-        chroma2 = (lab[..., 1].astype(np.int32) - 128) ** 2 + (lab[..., 2].astype(np.int32) - 128) ** 2
-        metal = (chroma2 < s.grey_chroma**2) & (lab[..., 0] < 235)
-        return small, grey, bins, metal
+        return small, grey, bins, metal_pixels(lab, s.grey_chroma)
 
     def _histogram(self, bins: np.ndarray, where: np.ndarray) -> np.ndarray:
         s = self.settings

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from vfdata.confidence import Confidence
 from vfdata.errors import InputError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
@@ -164,6 +165,16 @@ class DerivedMeta:
     def camera_frame_id(self) -> str:
         """The camera frame the object frame, mask and depth hang off (files before: the left view's)."""
         return self.values.get("camera_frame_id", layout.LEFT_FRAME)
+
+    @property
+    def confidence(self) -> Confidence | None:
+        """The verdict `vfdata process` wrote on the recording (`vfdata.confidence`); None in files from
+        before 2026-12-04, which were not judged."""
+        try:
+            values = self.json("confidence")
+        except ValueError:
+            raise InputError(self.values.get("source", "derived metadata"), "'confidence' is not JSON") from None
+        return None if values is None else Confidence.from_dict(values)
 
 
 # ---- writing -------------------------------------------------------------------------------------
@@ -372,6 +383,12 @@ class DerivedRecording:
         n = len(times)
         return Tracks(np.asarray(times, dtype=np.int64), np.asarray(points, dtype=np.float64).reshape(n, -1, 3),
                       np.asarray(visible, dtype=bool).reshape(n, -1), self.object_frame, self.meta)
+
+
+def read_confidence(path: str | Path) -> Confidence | None:
+    """The verdict on a processed recording (`DerivedMeta.confidence`), from its metadata alone."""
+    with DerivedRecording.open(path) as derived:
+        return derived.meta.confidence
 
 
 def read_tracker_name(path: str | Path) -> str | None:

@@ -9,6 +9,7 @@ import numpy as np
 
 from vfdata.errors import VisionForceError
 from vfdata.recording import layout
+from vfdata.recording.derived import DerivedMeta
 from vfdata.recording.mcaprecords import crc32
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS, Recording
 
@@ -42,8 +43,11 @@ def info_text(path: str | Path) -> str:
     lines.append(f"duration: {(end - start) / 1e9:.3f} s  ({start} .. {end} ns)")
     meta = rec.metadata_records.get(layout.RECORDING_METADATA) or rec.metadata_records.get(layout.DERIVED_METADATA)
     if meta:
-        shown = {k: v for k, v in meta.items() if k != "units"}
+        shown = {k: v for k, v in meta.items() if k not in ("units", "confidence")}
         lines.append("metadata: " + ", ".join(f"{k}={v}" for k, v in shown.items() if v))
+    verdict = derived_verdict(rec)
+    if verdict is not None:
+        lines.append(f"confidence: {verdict}")
     lines.append("")
     lines.append(f"{'topic':34} {'type':34} {'count':>8} {'rate Hz':>9} {'max gap ms':>11}")
     for info in rec.topics.values():
@@ -89,6 +93,22 @@ def info_text(path: str | Path) -> str:
     for problem in dict.fromkeys(rec.problems + unreadable):
         lines.append(f"damaged: {problem}")
     return "\n".join(lines)
+
+
+def derived_verdict(rec: Recording) -> str | None:
+    """A derived file's verdict on its recording (`vfdata.confidence`) in words: 'ok' or 'doubtful: ...';
+    None when the file holds none (a recording, or a derived file from before it was judged)."""
+    meta = rec.metadata_records.get(layout.DERIVED_METADATA)
+    if not meta or "confidence" not in meta:
+        return None
+    confidence = DerivedMeta.from_record(rec.path, meta).confidence
+    return "ok" if not confidence.doubtful else f"doubtful: {confidence.describe()}"
+
+
+def file_verdict(path: str | Path) -> str | None:
+    """`derived_verdict` of the file at `path` (a file that passed `check_file`)."""
+    with Recording.open(path) as rec:
+        return derived_verdict(rec)
 
 
 def check_file(path: str | Path) -> list[str]:

@@ -286,6 +286,14 @@ class Recording:
         return StereoFrame(i, frame.stamp_ns, cv2.remap(frame.left, l1, l2, cv2.INTER_LINEAR),
                            cv2.remap(frame.right, r1, r2, cv2.INTER_LINEAR))
 
+    def rectified_left(self, i: int) -> np.ndarray:
+        """The left image of frame i, rectified, without decoding the right one."""
+        left = self.left_image(i)
+        if self.is_rectified:
+            return left
+        (l1, l2), _ = self._rectify_maps
+        return cv2.remap(left, l1, l2, cv2.INTER_LINEAR)
+
     # -- frames ----------------------------------------------------------------------------------
     @property
     def frame_topic(self) -> str:

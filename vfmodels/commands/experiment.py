@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ray-address", help="the Ray cluster (default: the running one, or a new local instance; "
                                          "'auto': the cluster this machine belongs to)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")
+    p.add_argument("--keep-doubtful", action="store_true",
+                   help="train and validate on recordings `vfdata process` judged doubtful too (by default they "
+                        "are left out and listed in OUT/doubtful.md; doubtful test recordings always stay)")
     p.add_argument("--reports-only", action="store_true", help="only (re)write the tables and plots of OUT")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--train-arg", dest="train_args", action="append", default=[], metavar="ARG",
@@ -71,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
                                 depth=args.depth,
                                 segment=args.segment, prompt=args.prompt, workers=args.workers,
                                 executor=args.executor, ray_address=args.ray_address, device=args.device,
-                                max_frames=args.max_frames, progress=not args.quiet, train_args=args.train_args)
+                                max_frames=args.max_frames, progress=not args.quiet, train_args=args.train_args,
+                                keep_doubtful=args.keep_doubtful)
     if args.configs is not None:
         options.configs = args.configs
     result = run_experiment(args.manifest, args.out, options)

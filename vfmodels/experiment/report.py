@@ -328,12 +328,28 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
         (out / "timing.json").write_text(json.dumps(rates, indent=2))
         paths["timing.md"] = out / "timing.md"
     paths.update(write_figures(out, entries, trackers or ["geometry"], data.name))
+    doubtful = json.loads((out / "doubtful.json").read_text()) if (out / "doubtful.json").is_file() else []
+    if doubtful:
+        (out / "doubtful.md").write_text(doubtful_markdown(doubtful))
+        paths["doubtful.md"] = out / "doubtful.md"
     return paths
+
+
+def doubtful_markdown(doubtful: list[dict]) -> str:
+    """The recordings `vfdata process` judged doubtful (`vfdata.confidence`), and what the grid did with them."""
+    lines = ["# Doubtful recordings", "",
+             "Judged by `vfdata process` (reasons: docs/reconstruction.md, \"How sure\"). Training and validation "
+             "recordings among them were left out unless the experiment ran with `--keep-doubtful`; test "
+             "recordings stay in the tables.", "",
+             "| recording | split | tracks | reasons | left out |", "| --- | --- | --- | --- | --- |"]
+    lines += [f"| {d['id']} | {d['split']} | {d['tracker']} | {', '.join(d['reasons'])} | "
+              f"{'yes' if d['left_out'] else 'no'} |" for d in doubtful]
+    return "\n".join(lines) + "\n"
 
 
 def summary_text(paths: dict[str, Path]) -> str:
     """What the command prints at the end: Table I (or II), the claims and where everything is."""
-    lines = [paths[key].read_text() for key in ("table1.md", "table2.md") if key in paths]
+    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "doubtful.md") if key in paths]
     if "claims" in paths:
         for claim in json.loads(paths["claims"].read_text()).values():
             lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")

@@ -33,6 +33,7 @@ from vfdata.device import lightning_accelerator, resolve_device
 from vfdata.errors import InputError, VisionForceError
 from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
+from vfdata.recording.derived import read_confidence
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
@@ -64,6 +65,7 @@ class ExperimentOptions:
     ray_address: str | None = None  # the Ray cluster (None: the running one, or a new local instance)
     device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (Lightning accelerator)
     max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
+    keep_doubtful: bool = False  # train and validate on recordings `vfdata process` judged doubtful too
     train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
     progress: bool = True
 
@@ -77,10 +79,27 @@ class ExperimentOptions:
         return [ALL_VARIANTS[n] for n in names]
 
 
-def tracker_manifest(manifest: Manifest, tracker: str, out: Path) -> Path:
-    """A copy of the manifest whose `processed:` entries name the tracker's derived files."""
-    entries = [e.with_processed(derived_path(e, tracker)) for e in manifest.entries]
-    return write_manifest(out, f"{manifest.name}-{tracker}", entries)
+def tracker_manifest(manifest: Manifest, tracker: str, out: Path, keep_doubtful: bool = False
+                     ) -> tuple[Path, list[dict]]:
+    """A copy of the manifest whose `processed:` entries name the tracker's derived files, and the
+    recordings `vfdata process` judged doubtful (`vfdata.confidence`: id, split, reasons). Doubtful training
+    and validation recordings are left out unless `keep_doubtful`: a reversed object frame turns every label
+    of a recording (on a fresh colon dataset one such recording took validation from 2.35 to 3.06 N)."""
+    entries, doubtful = [], []
+    for entry in manifest.entries:
+        entry = entry.with_processed(derived_path(entry, tracker))
+        verdict = read_confidence(entry.processed) if entry.processed.is_file() else None
+        left_out = False
+        if verdict is not None and verdict.doubtful:
+            left_out = entry.split in ("train", "val") and not keep_doubtful
+            doubtful.append({"id": entry.id, "split": entry.split, "tracker": tracker, "reasons": verdict.reasons,
+                             "left_out": left_out, "figures": verdict.figures})
+        if not left_out:
+            entries.append(entry)
+    if not any(e.split == "train" for e in entries) and any(e.split == "train" for e in manifest.entries):
+        raise InputError(manifest.path, f"every training recording was judged doubtful ({tracker} tracks): see "
+                                        "their .processed.png, or keep them with --keep-doubtful")
+    return write_manifest(out, f"{manifest.name}-{tracker}", entries), doubtful
 
 
 @contextmanager
@@ -197,11 +216,20 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
                       options.max_frames, options.workers, options.progress, options.executor, options.ray_address,
                       device)
     seconds["convert"] += convert_seconds
-    manifests = {t: tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
+    manifests, doubtful = {}, []
+    for t in trackers:
+        manifests[t], flagged = tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml",
+                                                 options.keep_doubtful)
+        doubtful += flagged
+    for d in doubtful:
+        log.warning(f"warning: {d['id']} ({d['split']}, {d['tracker']} tracks) is doubtful: "
+                    f"{', '.join(d['reasons'])}" + ("; left out of training" if d["left_out"] else ""))
+    (out / "doubtful.json").write_text(json.dumps(doubtful, indent=2))
     (out / "experiment.json").write_text(json.dumps({
         "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,
         "epochs": options.epochs, "depth": options.depth, "segment": options.segment,
         "max_frames": options.max_frames, "cpu_count": os.cpu_count(), "flat_tissue": flat_tissue,
+        "keep_doubtful": options.keep_doubtful,
     }, indent=2))
     grid = [(v, s) for v in variants for s in range(options.seeds)]
     todo = [(v, s) for v, s in grid if not (run_folder(out, v, s) / "metrics.json").is_file()]

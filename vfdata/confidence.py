@@ -1,0 +1,112 @@
+"""How sure a processed recording is, in one verdict a user can act on: `ok` or `doubtful`, with reasons.
+
+A frame reversed by one mis-segmented or occluded first frame flips every force of a recording, and
+nothing in the forces themselves shows it. So `vfdata process` judges each recording on what it can see:
+
+- the object frame (`vfdata.recon.tissue_frame`): whether its fits of the axis agree, and whether the
+  cues on the clamped end (taper, fixture, motion) are sure and agree;
+- the tissue mask over time: whether its outline stays on depth steps (a tissue stands off its bed; a
+  mask grown onto the bed has outline on smooth bed depth) and its area stays near the first frame's;
+- the tracks: the share of points still followed at the end.
+
+The verdict and its figures go into the derived file's metadata (`confidence`, `doubtful`), which
+`vfdata process`, `info`, `check`, `experiment`, `predict` and `live` read (`DerivedMeta.confidence`).
+The thresholds were set on simulated recordings of seeds the yardstick does not use (docs/results.md,
+"Never silently wrong").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+EDGE_STEP_MM = 3.0  # a depth step this deep across the outline marks the tissue's edge
+EDGE_RING_PX = 4  # how far each side of the outline the step is looked for
+MIN_EDGE_SUPPORT = 0.35  # median share of the outline on depth steps, under which the mask is doubtful
+MAX_AREA_CHANGE = 2.0  # the mask's area grows or shrinks more than this factor from the first frame's
+MIN_TRACKS_KEPT = 0.25  # share of the tracked points followed to the last frame
+
+REASONS = {
+    "axis": "object frame: the tissue's axis fits disagree (an occluder's depth may have turned it)",
+    "end": "object frame: the cues disagree on, or cannot tell, which end is clamped (Z may be reversed)",
+    "mask_edges": "mask: its outline mostly off depth steps (it may have grown onto the bed)",
+    "mask_area": "mask: its area changes more than {factor:g}x from the first frame's",
+    "tracks": "tracks: {kept:.0%} of the points are still followed at the end",
+}
+
+
+@dataclass
+class Confidence:
+    """The verdict on one processed recording: `reasons` (keys of REASONS) and the figures behind them."""
+
+    reasons: list[str] = field(default_factory=list)
+    figures: dict = field(default_factory=dict)
+
+    @property
+    def doubtful(self) -> bool:
+        return bool(self.reasons)
+
+    def describe(self) -> str:
+        """The reasons in words, '; '-joined ('ok' when there are none)."""
+        if not self.reasons:
+            return "ok"
+        return "; ".join(REASONS[r].format(factor=MAX_AREA_CHANGE, kept=self.figures.get("tracks_kept", 0.0))
+                         for r in self.reasons)
+
+    def to_dict(self) -> dict:
+        return {"doubtful": self.doubtful, "reasons": list(self.reasons), "figures": self.figures}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> Confidence:
+        return cls([str(r) for r in values.get("reasons", []) if str(r) in REASONS], dict(values.get("figures", {})))
+
+
+def edge_support(mask: np.ndarray, depth_mm: np.ndarray) -> float:
+    """Share of the (H, W) mask's outline pixels that have, within EDGE_RING_PX outside, depth farther or
+    nearer by more than EDGE_STEP_MM (the bed behind, an instrument in front) or no depth at all (NaN:
+    where stereo fails at an occluding edge). NaN for an empty mask."""
+    m = np.asarray(mask, dtype=np.uint8)
+    if not m.any():
+        return float("nan")
+    depth = np.asarray(depth_mm, dtype=np.float32)
+    kernel = np.ones((2 * EDGE_RING_PX + 1, 2 * EDGE_RING_PX + 1), np.uint8)
+    outline = m.astype(bool) & ~cv2.erode(m, np.ones((3, 3), np.uint8)).astype(bool)
+    outside = ~m.astype(bool)
+    known = np.isfinite(depth) & (depth > 0)
+    farthest = cv2.dilate(np.where(outside & known, depth, 0).astype(np.float32), kernel)
+    nearest = cv2.erode(np.where(outside & known, depth, np.float32(1e9)).astype(np.float32), kernel)
+    unknown_out = cv2.dilate((outside & ~known).astype(np.uint8), kernel).astype(bool)
+    d = depth[outline]
+    step = (farthest[outline] - d > EDGE_STEP_MM) | (d - nearest[outline] > EDGE_STEP_MM) | ~np.isfinite(d)
+    step |= unknown_out[outline]
+    return float(step.mean()) if outline.any() else float("nan")
+
+
+def assess(frame_doubts: list[str], mask_areas: np.ndarray, edge_supports: np.ndarray,
+           visible: np.ndarray | None, frame_figures: dict | None = None) -> Confidence:
+    """The verdict from the object frame's doubts (`ObjectFrame.diagnostics["doubtful"]`), the mask's area
+    per frame (pixels), its edge support on some frames (`edge_support`), and the tracks' (F, N) visibility
+    (None: no tracker)."""
+    reasons = [r for r in frame_doubts if r in REASONS]
+    areas = np.asarray(mask_areas, dtype=np.float64)
+    figures = dict(frame_figures or {})
+    if len(areas) and areas[0] > 0:
+        change = float(max(areas.max() / areas[0], areas[0] / max(areas.min(), 1.0)))
+        figures["mask_area_change"] = round(change, 3)
+        if change > MAX_AREA_CHANGE:
+            reasons.append("mask_area")
+    supports = np.asarray(edge_supports, dtype=np.float64)
+    supports = supports[np.isfinite(supports)]
+    if len(supports):
+        figures["mask_edge_support"] = round(float(np.median(supports)), 3)
+        if np.median(supports) < MIN_EDGE_SUPPORT:
+            reasons.append("mask_edges")
+    if visible is not None and np.size(visible):
+        vis = np.asarray(visible, dtype=bool)
+        kept = float(vis[-1].sum() / max(vis[0].sum(), 1))
+        figures["tracks_kept"] = round(kept, 3)
+        if kept < MIN_TRACKS_KEPT:
+            reasons.append("tracks")
+    return Confidence(reasons, figures)
