@@ -241,3 +241,7 @@ def main(args: list[str] | None = None) -> None:
             print(f"train.py: error: {type(exc).__name__}: {text} (run `python train.py --debug ...` for the "
                   "traceback)", file=sys.stderr)
         sys.exit(1)
+
+
+if __name__ == "__main__":  # `python -m vfmodels.train ...`: train.py for an installed package
+    main()

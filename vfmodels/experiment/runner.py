@@ -6,10 +6,11 @@ Steps (docs/experiments.md):
 1. Prepare (`prepare`): convert and process every recording, once per tracker the variants need; a
    manifest per tracker is written to `OUT/manifests/`.
 2. Train and test each variant x seed through the project's LightningCLI (`vfmodels.train`) with the
-   variant's config from `configs/`: best checkpoint by validation loss, then `trainer.predict` over
-   the test split. Each run folder `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames:
-   recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run
-   with a metrics.json is finished and is not repeated, so an interrupted grid resumes.
+   variant's config from the package's configs (`vfmodels.config_files`; the tree's `configs/`): best
+   checkpoint by validation loss, then `trainer.predict` over the test split. Each run folder
+   `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames: recording, orientation_deg,
+   frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run with a metrics.json is
+   finished and is not repeated, so an interrupted grid resumes.
 3. Report (`vfmodels.experiment.report`): Tables I-III, the timing table and the figures into OUT/.
 """
 
@@ -34,6 +35,7 @@ from vfdata.errors import InputError, VisionForceError
 from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
+from vfmodels.config_files import CONFIGS
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
@@ -45,7 +47,6 @@ from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
 
 # Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
 PAPER_PROTOCOL = ("--early_stopping.patience=null",)
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 log = logging.getLogger(__name__)
 
 
