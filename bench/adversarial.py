@@ -152,7 +152,7 @@ def bags_family(tmp: Path, verbose: bool) -> Counter:
     import numpy as np
     from bagfixtures import BagSpec, write_bag
     from rosbags.rosbag2 import StoragePlugin
-    from test_bags import _rewrite_mcap_bag
+    from test_bag_index import _rewrite_mcap_bag
 
     from vfdata.recording import Recording
 
