@@ -185,17 +185,18 @@ def test_bad_checkpoints_are_one_line_errors_and_run_nothing(tmp_path, capsys, m
     assert not (tmp_path / "ran").exists()
 
 
-def test_a_checkpoint_of_another_model_than_the_config_is_one_line_naming_both(tmp_path, capsys, monkeypatch):
+def test_a_checkpoint_of_another_model_than_the_config_is_one_line_naming_both(tmp_path, capfd, monkeypatch):
     """E.g. a point-cloud checkpoint under proposed.yaml: which model the checkpoint holds and which the
-    --config builds, not Lightning's `Error(s) in loading state_dict for ForceRegressor`."""
+    --config builds, not Lightning's `Error(s) in loading state_dict for ForceRegressor`; said before
+    the trainer starts, so no line of Lightning's comes with it."""
     monkeypatch.setattr(sys, "argv", ["train.py"])
     train.main(["fit", *SYNTHETIC, "--model.model.dim=16", "--model.model.lstm_hidden=32",
                 f"--trainer.default_root_dir={tmp_path / 'small'}", "--trainer.max_epochs=1"])
     ckpt = tmp_path / "small" / "checkpoints" / "last.ckpt"
-    capsys.readouterr()
+    capfd.readouterr()
     with pytest.raises(SystemExit) as exit_info:
         train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'default'}", f"--ckpt_path={ckpt}"])
-    err = capsys.readouterr().err.strip()
+    err = capfd.readouterr().err.strip()
     assert exit_info.value.code == 1 and len(err.splitlines()) == 1, err
     assert err.startswith(f"train.py: error: {ckpt}: ") and "state_dict" not in err, err
     assert "SetTransformerLSTM" in err and "dim=16" in err and "dim=64" in err and "lstm_hidden=32" in err, err

@@ -25,6 +25,7 @@ from jsonargparse.typing import PositiveInt
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.callbacks import ProgressBar
 from lightning.pytorch.cli import LightningCLI
+from torch import nn
 
 from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--data.help ForceDataModule` resolves
 from vfdata.errors import InputError, VisionForceError
@@ -36,7 +37,7 @@ from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
 from vfmodels.progress import RunProgressBar
 from vfmodels.quiet import quiet_lightning
-from vfmodels.registry import class_path
+from vfmodels.registry import MODELS, class_path
 from vfmodels.regressor import ForceRegressor, read_checkpoint
 from vfmodels.run_folder import closing_line, remove_new_entries, run_entries
 
@@ -137,6 +138,22 @@ def check_checkpoint_fits(ckpt_path: str | Path, regressor: ForceRegressor) -> N
                                 "csv/version_N/config.yaml)")
 
 
+def _config_network(model_config) -> nn.Module | None:
+    """The network a parsed config's `model.model` builds, when it is one of `vfmodels.registry`'s (None
+    otherwise: the check then waits for the CLI to build it). Pretrained-weight files are not read."""
+    network = getattr(model_config, "model", None)
+    name = str(getattr(network, "class_path", "")).rpartition(".")[2]
+    if name not in MODELS or not str(network.class_path).startswith("vfmodels."):
+        return None
+    init_args = dict(vars(network.init_args)) if getattr(network, "init_args", None) is not None else {}
+    if "weights_path" in init_args:
+        init_args["weights_path"] = None
+    try:
+        return MODELS[name](**init_args)
+    except (TypeError, ValueError):
+        return None  # the CLI says what is wrong with the arguments when it builds the model
+
+
 def _model_name(path: object) -> str:
     return str(path or "model").rpartition(".")[2]
 
@@ -211,6 +228,11 @@ class ForceCLI(LightningCLI):
             if ckpt_path and ckpt_path != "best":
                 check_checkpoint(ckpt_path)
         super()._parse_ckpt_path()
+        if subcommand and ckpt_path and ckpt_path != "best":
+            # Before the trainer starts (and says which accelerators it found): the one line comes alone.
+            network = _config_network(self.config[subcommand].get("model"))
+            if network is not None:
+                check_checkpoint_fits(ckpt_path, ForceRegressor(network))
 
     before_validate = before_test = before_predict = _resolve_checkpoint
 
