@@ -63,7 +63,7 @@ class ExperimentOptions:
     workers: int = 1  # recordings processed in parallel processes (executor local)
     executor: str = "local"  # where processing jobs and training runs go: local, or ray (docs/cluster.md)
     ray_address: str | None = None  # the Ray cluster (None: the running one, or a new local instance)
-    device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (Lightning accelerator)
+    device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (vfdata.device: auto)
     max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
     train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
     progress: bool = True
@@ -190,13 +190,13 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
-    device = resolve_device(options.device)
-    if device != "cpu":
-        options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(device)}",
+    training = resolve_device(options.device, "training")
+    if training != "cpu":
+        options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(training)}",
                                                *options.train_args])
     seconds = prepare(list(manifest.entries), trackers, options.depth, options.segment, options.prompt,
                       options.max_frames, options.workers, options.progress, options.executor, options.ray_address,
-                      device)
+                      resolve_device(options.device, "frames"))
     seconds["convert"] += convert_seconds
     manifests = {t: tracker_manifest(manifest, t, out / "manifests" / f"{t}.manifest.yaml") for t in trackers}
     (out / "experiment.json").write_text(json.dumps({
