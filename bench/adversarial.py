@@ -385,8 +385,11 @@ def edges_family(tmp: Path, verbose: bool) -> Counter:
     code, err = cli(vfdata_main, ["inspect-bag", "--quiet", str(bag)])
     record("inspect-bag unconvertible", one_line_error(code, err, str(bag)), f"exit {code}: {err}")
     # a full disk while the preview PNG is written
-    rec, raw = tmp / "small.mcap", make_raw(tmp / "small", n=4)
-    assert cli(vfdata_main, ["convert", "--quiet", "--format", "png", str(raw), str(rec)])[0] == 0
+    from vfdata.sim import synthesize
+
+    synthesize("mini", tmp / "sim", frames=3, progress=False)  # a tissue the mask finds
+    rec = tmp / "small.mcap"
+    assert cli(vfdata_main, ["convert", "--quiet", "--format", "png", str(tmp / "sim" / "mini_002"), str(rec)])[0] == 0
     out = tmp / "full" / "small.processed.mcap"
     out.parent.mkdir()
     write_bytes = Path.write_bytes
