@@ -25,6 +25,7 @@ COMMANDS = [
     "convert",
     "info",
     "check",
+    "sync",
     "process",
     "inspect-bag",
     "synth",
