@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from vfdata.errors import InputError
 from vfmodels.config_files import CONFIGS, config_path
 from vfmodels.experiment.variants import ALL_VARIANTS
 
@@ -29,7 +30,7 @@ def test_the_source_trees_configs_are_the_packages():
     assert CONFIGS.resolve().is_relative_to((ROOT / "vfmodels").resolve())
     for variant in ALL_VARIANTS.values():
         assert config_path(variant.config).is_file(), variant.config
-    with pytest.raises(Exception, match="no config of that name"):
+    with pytest.raises(InputError, match="no config of that name"):
         config_path("nonesuch")
 
 
