@@ -9,14 +9,17 @@ where a user would meet them, and sorts every outcome into one of:
 - traceback: any other exception, an internal error, more than one line, a wrong exit status;
 - code executed: a checkpoint ran a command.
 
-    python bench/adversarial.py [--families mcap,convert,bags,checkpoints,outputs] [--verbose]
+    python bench/adversarial.py [--families mcap,convert,bags,checkpoints,outputs,edges] [--verbose]
 
 Families: `mcap` (truncations every 5 % and 12 single-bit flips per region of a recording, read by
 `Recording` as `damaged='error'` and `'skip'`, by `vfdata info` and `vfdata check`), `convert` (the raw
 folder and bag corpus of tests/test_convert_corpus.py), `bags` (truncations every 5 % and bit flips of
 ROS 1, ROS 1 lz4, ROS 2 sqlite and ROS 2 MCAP bags, through `vfdata convert`), `checkpoints` (damaged and malicious
 checkpoints through `vfdata predict --ckpt` and `train.py test --ckpt_path`), `outputs` (outputs that
-are inputs, SIGTERM, two converts to one output, stale temporaries; these run subprocesses).
+are inputs, SIGTERM, two converts to one output, stale temporaries; these run subprocesses), `edges` (the
+rough edges of issue 34: FFmpeg's line before ours, a file named twice, inspect-bag's exit status, a full
+disk at the preview, a checkpoint of another model than the config). Stderr is read at the file
+descriptor, so what C libraries print themselves counts as a line.
 """
 
 from __future__ import annotations
@@ -48,16 +51,35 @@ def digest(path: Path) -> dict[str, str]:
 
 
 def cli(run, argv: list[str]) -> tuple[int, str]:
-    """(exit status, stderr) of an in-process command line; SystemExit counts as its status."""
+    """(exit status, stderr) of an in-process command line; SystemExit counts as its status. Stderr
+    includes what C libraries write to file descriptor 2 themselves (FFmpeg's log, OpenCV's warnings)."""
     err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+    with fd_stderr() as native, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
             code = run(argv)
         except SystemExit as exc:
             code = exc.code if isinstance(exc.code, int) else 1
         except Exception as exc:  # noqa: BLE001 - an escaping exception is what this counts
             return -1, f"Traceback: {type(exc).__name__}: {exc}"
-    return int(code or 0), err.getvalue().strip()
+    return int(code or 0), (native.read() + err.getvalue()).strip()
+
+
+@contextlib.contextmanager
+def fd_stderr():
+    """File descriptor 2 into a temporary file for the block; yields a reader of what was written."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        os.dup2(sink.fileno(), 2)
+        written = io.StringIO()
+        try:
+            yield written
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            written.write(sink.read().decode(errors="replace"))
+            written.seek(0)
 
 
 def one_line_error(code: int, err: str, expect: str | None = None) -> bool:
@@ -152,7 +174,7 @@ def bags_family(tmp: Path, verbose: bool) -> Counter:
     import numpy as np
     from bagfixtures import BagSpec, write_bag
     from rosbags.rosbag2 import StoragePlugin
-    from test_bags import _rewrite_mcap_bag
+    from test_bag_index import _rewrite_mcap_bag
 
     from vfdata.recording import Recording
 
@@ -310,8 +332,97 @@ def outputs_family(tmp: Path, verbose: bool) -> Counter:
     return counts
 
 
+# -- the rough edges of issue 34 -----------------------------------------------------------------
+def edges_family(tmp: Path, verbose: bool) -> Counter:
+    """Cases an earlier corpus let through as clean: FFmpeg's own line before ours, a file named twice,
+    an exit 0 on a bag that cannot be converted, a derived MCAP left without its preview by a full
+    disk, a checkpoint of another model than the config that names neither. Each is clean only as one
+    line naming the file (exit 1) with nothing left behind."""
+    import errno
+    import shutil
+
+    import cv2
+    import numpy as np
+    import test_train_cli
+    from bagfixtures import BagSpec, write_bag
+    from rawfixtures import make_raw
+
+    import train
+
+    counts: Counter = Counter()
+
+    def record(name: str, clean: bool, detail: str) -> None:
+        counts["clean" if clean else "traceback"] += 1
+        if verbose and not clean:
+            print(f"  edges {name}: not clean: {detail[:300]}")
+
+    # convert on a video that does not open, in a fresh process (FFmpeg's log level is set once)
+    for name in ("broken", "text"):
+        src = make_raw(tmp / f"video_{name}", n=12)
+        shutil.rmtree(src / "left")
+        shutil.rmtree(src / "right")
+        if name == "text":
+            (src / "stereo.mp4").write_text("a note, not a video\n")
+        else:
+            writer = cv2.VideoWriter(str(src / "stereo.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (320, 128))
+            for frame in np.random.default_rng(0).integers(0, 256, (12, 128, 320, 3), np.uint8):
+                writer.write(frame)
+            writer.release()
+            data = (src / "stereo.mp4").read_bytes()
+            (src / "stereo.mp4").write_bytes(data[:len(data) // 2])
+        run = _vfdata("convert", "--quiet", str(src), str(tmp / f"video_{name}.mcap"))
+        code, err = run.wait(timeout=120), run.stderr.read().strip()
+        record(f"convert {name} MP4", one_line_error(code, err, str(src / "stereo.mp4"))
+               and not (tmp / f"video_{name}.mcap").exists(), err)
+    # check on a file that is not an MCAP
+    path = tmp / "not.mcap"
+    path.write_bytes(b"hello, not an mcap")
+    code, err = cli(vfdata_main, ["check", str(path)])
+    record("check not an MCAP", one_line_error(code, err) and err.count(str(path)) == 1, err)
+    # inspect-bag on a bag without images
+    bag = tmp / "noimages.bag"
+    write_bag(bag, BagSpec(with_images=False, frames=2))
+    code, err = cli(vfdata_main, ["inspect-bag", "--quiet", str(bag)])
+    record("inspect-bag unconvertible", one_line_error(code, err, str(bag)), f"exit {code}: {err}")
+    # a full disk while the preview PNG is written
+    from vfdata.sim import synthesize
+
+    synthesize("mini", tmp / "sim", frames=3, progress=False)  # a tissue the mask finds
+    rec = tmp / "small.mcap"
+    assert cli(vfdata_main, ["convert", "--quiet", "--format", "png", str(tmp / "sim" / "mini_002"), str(rec)])[0] == 0
+    out = tmp / "full" / "small.processed.mcap"
+    out.parent.mkdir()
+    write_bytes = Path.write_bytes
+
+    def full(self, data):
+        if ".png" in self.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_bytes(self, data)
+
+    Path.write_bytes = full
+    try:
+        code, err = cli(vfdata_main, ["process", "--quiet", "--tracker", "none", str(rec), str(out)])
+    finally:
+        Path.write_bytes = write_bytes
+    left = sorted(p.name for p in out.parent.iterdir())
+    record("process full disk at the preview", one_line_error(code, err) and not left, f"{err} left {left}")
+    # train.py test with a checkpoint of another model than its config
+    argv0 = sys.argv
+    sys.argv = ["train.py"]
+    try:
+        cli(train.main, ["fit", *test_train_cli.SYNTHETIC, "--model.model.dim=16", "--trainer.max_epochs=1",
+                         f"--trainer.default_root_dir={tmp / 'small_run'}"])
+        ckpt = tmp / "small_run" / "checkpoints" / "last.ckpt"
+        code, err = cli(train.main, ["test", *test_train_cli.SYNTHETIC, f"--trainer.default_root_dir={tmp / 'run'}",
+                                     f"--ckpt_path={ckpt}"])
+    finally:
+        sys.argv = argv0
+    record("train.py test, another model", one_line_error(code, err, str(ckpt)), err)
+    return counts
+
+
 FAMILIES = {"mcap": mcap_family, "convert": convert_family, "bags": bags_family, "checkpoints": checkpoint_family,
-            "outputs": outputs_family}
+            "outputs": outputs_family, "edges": edges_family}
 
 
 def main() -> None:

@@ -19,16 +19,15 @@ import argparse
 import contextlib
 import os
 import time
-from pathlib import Path
 
 import torch
 import yaml
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vfmodels import ForceRegressor, SetTransformerLSTM
+from vfmodels.config_files import CONFIGS
 
 T, N = 16, 256
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def config_args(model: str) -> tuple[dict, int]:

@@ -3,6 +3,7 @@ even by a race, nothing left behind on errors, signals or a full disk, stale tem
 
 from __future__ import annotations
 
+import errno
 import multiprocessing
 import os
 import shutil
@@ -214,3 +215,17 @@ def test_outputs_that_belong_together_are_published_together(tmp_path):
         ta.write_bytes(b"a")
         tb.write_bytes(b"b")
     assert a.read_bytes() == b"a" and b.read_bytes() == b"b"
+
+
+def test_a_writer_given_a_members_temporary_names_the_output(tmp_path):
+    """A writer that is atomic itself (McapWriter) writing into a temporary of `atomic_outputs`: a full
+    disk names the output the user asked for, not either temporary; `overwrite` may differ per output."""
+    a, b = tmp_path / "a.mcap", tmp_path / "a.png"
+    b.write_bytes(b"older picture")
+    with pytest.raises(OutputError, match=r"a\.mcap: no space left") as info, \
+            atomic_outputs([b, a], overwrite=(True, False)) as (tb, ta), atomic_output(ta) as inner:
+        tb.write_bytes(b"b")
+        inner.write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, "No space left on device", str(inner))
+    assert info.value.path == a
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png"] and b.read_bytes() == b"older picture"

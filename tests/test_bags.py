@@ -327,16 +327,23 @@ def test_inspect_bag(tmp_path, capsys):
             ("zs", BagSpec(ros2=True, storage=StoragePlugin.MCAP, zstd=True, frames=2), "streaming through rosbags")):
         write_bag(tmp_path / name, spec)
         assert f"reading: {reading}" in inspect_bag_text(tmp_path / name), name
-    # a bag that cannot be converted is still listed, with the reason
+    assert main(["inspect-bag", str(tmp_path / "s.bag"), "--quiet"]) == 0
+    assert "ready to convert" in capsys.readouterr().out
+    # a bag that cannot be converted is still listed, with the reason, and exits 1 saying it in one line
     write_bag(tmp_path / "n.bag", BagSpec(with_images=False, frames=2))
-    assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 0
-    out = capsys.readouterr().out
-    assert "/netft_data " in out and "cannot convert: no image topic found" in out
+    assert main(["inspect-bag", str(tmp_path / "n.bag"), "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "/netft_data " in captured.out and "cannot convert: no image topic found" in captured.out
+    assert captured.err.strip().startswith(f"vfdata inspect-bag: error: {tmp_path / 'n.bag'}: cannot convert: no "
+                                           "image topic found"), captured.err
+    assert len(captured.err.strip().splitlines()) == 1, captured.err
     # ... also when the problem shows only while reading the messages
     write_bag(tmp_path / "f.bag", BagSpec(encoding="32FC1", frames=2))
     text = inspect_bag_text(tmp_path / "f.bag")
     assert "left images (dVRK default)" in text
     assert "cannot convert: /jhu_daVinci/left/image_raw: message 0: unsupported image encoding '32FC1'" in text
+    assert main(["inspect-bag", str(tmp_path / "f.bag"), "--quiet"]) == 1
+    assert "unsupported image encoding '32FC1'" in capsys.readouterr().err
 
 
 def test_cli_convert_bag(tmp_path, capsys):

@@ -4,9 +4,13 @@ the tables, calibration.yaml, meta.yaml; and the order of what it writes."""
 from __future__ import annotations
 
 import csv
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from convert_fixtures import out_of_order_chunks
@@ -70,3 +74,35 @@ def test_force_gap_default_is_relative_to_the_rate():
     stalled = np.concatenate([np.arange(0, 10**8, 1_000_000), [10**8 + 60_000_000]])
     with pytest.raises(InputError, match=r"gap of 61\.0 ms .*default tolerance 50 ms.*--force-gap-ms"):
         check_force_covers(Path("force.csv"), stalled, np.array([0, 10**8 + 60_000_000]))
+
+
+def _broken_videos(src: Path) -> None:
+    """A real left/right MP4 pair cut in half (the index, FFmpeg's 'moov atom', is never written)."""
+    for side in ("left", "right"):
+        shutil.rmtree(src / side)
+        writer = cv2.VideoWriter(str(src / f"{side}.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 30, (160, 128))
+        for frame in np.random.default_rng(0).integers(0, 256, (12, 128, 160, 3), np.uint8):
+            writer.write(frame)
+        writer.release()
+        data = (src / f"{side}.mp4").read_bytes()
+        (src / f"{side}.mp4").write_bytes(data[:len(data) // 2])
+
+
+def _text_video(src: Path) -> None:
+    shutil.rmtree(src / "left")
+    shutil.rmtree(src / "right")
+    (src / "stereo.mp4").write_text("not a video, a note someone saved under the video's name\n")
+
+
+@pytest.mark.parametrize("make, bad", [(_broken_videos, "left.mp4"), (_text_video, "stereo.mp4")])
+def test_a_video_that_does_not_open_is_our_one_line_without_ffmpegs(tmp_path, make, bad):
+    """In a process of its own: OpenCV sets FFmpeg's log level when it first opens a video."""
+    src = make_raw(tmp_path / "rec", n=12)
+    make(src)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env.pop("OPENCV_FFMPEG_LOGLEVEL", None)
+    done = subprocess.run([sys.executable, "-m", "vfdata", "convert", "--quiet", str(src), str(tmp_path / "o.mcap")],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 1
+    assert done.stderr.strip().splitlines() == [f"vfdata convert: error: {src / bad}: video cannot be opened"]
+    assert not (tmp_path / "o.mcap").exists()

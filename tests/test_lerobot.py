@@ -143,6 +143,16 @@ def test_one_episode_converts_to_one_file_and_the_cli_says_what_to_give(tmp_path
     assert "no episode 9 (the dataset has episodes 0..1)" in capsys.readouterr().err
 
 
+def test_a_clock_offset_moves_the_force_onto_the_video_clock(tmp_path):
+    root = write_dataset(tmp_path / "ds", episodes=1)
+    assert main(["convert", str(root), str(tmp_path / "plain.mcap"), "--episode", "0", "--quiet"]) == 0
+    assert main(["convert", str(root), str(tmp_path / "moved.mcap"), "--episode", "0", "--quiet",
+                 "--time-offset-ms=-12.5"]) == 0
+    with Recording.open(tmp_path / "plain.mcap") as plain, Recording.open(tmp_path / "moved.mcap") as moved:
+        np.testing.assert_array_equal(moved.force.times_ns, plain.force.times_ns + 12_500_000)
+        np.testing.assert_array_equal(moved.frame_times_ns, plain.frame_times_ns)
+
+
 def test_splits_and_meta_from_the_command_line_reach_the_manifest(tmp_path, capsys):
     root = write_dataset(tmp_path / "ds", episodes=3)
     assert main(["convert", str(root), str(tmp_path / "out"), "--splits", "train=0:1,val=1:2,test=2:3",

@@ -3,8 +3,10 @@ simulator's ground truth, provenance, and the errors a user can hit."""
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -128,6 +130,37 @@ def test_errors_are_one_line(recording, tmp_path, capsys, argv, message):
     err = capsys.readouterr().err.strip()
     assert code == 1 and len(err.splitlines()) == 1 and message in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def _full_disk_for_png(monkeypatch) -> None:
+    """A disk that fills up when the preview PNG is written (the derived MCAP fits)."""
+    write_bytes = Path.write_bytes
+
+    def full(self, data):
+        if ".png" in self.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self))
+        return write_bytes(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full)
+
+
+def test_a_full_disk_at_the_preview_leaves_neither_output(recording, tmp_path, capsys, monkeypatch):
+    """The derived MCAP and its picture are one transaction: no MCAP without its picture, and with
+    --overwrite the older pair stays as it was."""
+    _full_disk_for_png(monkeypatch)
+    out = tmp_path / "x.processed.mcap"
+    argv = ["process", "--quiet", "--tracker", "none", "--max-frames", "2", str(recording), str(out)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"vfdata process: error: {tmp_path / 'x.processed.png'}: no space left on the device (or quota " \
+                  "exceeded); nothing was written: free some space or write the output elsewhere", err
+    assert list(tmp_path.iterdir()) == []
+    out.write_bytes(b"older mcap")
+    with open(tmp_path / "x.processed.png", "wb") as picture:  # past the full disk, which only Path.write_bytes has
+        picture.write(b"its picture")
+    assert main([*argv, "--overwrite"]) == 1
+    assert out.read_bytes() == b"older mcap" and (tmp_path / "x.processed.png").read_bytes() == b"its picture"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.processed.mcap", "x.processed.png"]
 
 
 def test_source_without_images_is_refused(processed, tmp_path, capsys):

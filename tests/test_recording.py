@@ -439,6 +439,17 @@ def test_not_an_mcap(tmp_path, capsys):
     assert "not an MCAP file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("content", [b"hello world, not an mcap file", None])
+def test_check_names_the_file_once(tmp_path, capsys, content):
+    path = tmp_path / "x.mcap"
+    if content is not None:
+        path.write_bytes(content)
+    assert main(["check", str(path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.count(str(path)) == 1, err
+    assert err.endswith("not an MCAP file (bad magic)" if content else "file not found"), err
+
+
 def test_info_reports_rates_and_sync(converted_png):
     text = info_text(converted_png)
     assert "/force_sensor/wrench" in text and "1000.00" in text and "force-to-frame sync" in text

@@ -248,6 +248,24 @@ def test_bad_checkpoints_are_one_line_errors_and_run_nothing(tmp_path, capsys, m
     assert not (tmp_path / "ran").exists()
 
 
+def test_a_checkpoint_of_another_model_than_the_config_is_one_line_naming_both(tmp_path, capfd, monkeypatch):
+    """E.g. a point-cloud checkpoint under proposed.yaml: which model the checkpoint holds and which the
+    --config builds, not Lightning's `Error(s) in loading state_dict for ForceRegressor`; said before
+    the trainer starts, so no line of Lightning's comes with it."""
+    monkeypatch.setattr(sys, "argv", ["train.py"])
+    train.main(["fit", *SYNTHETIC, "--model.model.dim=16", "--model.model.lstm_hidden=32",
+                f"--trainer.default_root_dir={tmp_path / 'small'}", "--trainer.max_epochs=1"])
+    ckpt = tmp_path / "small" / "checkpoints" / "last.ckpt"
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        train.main(["test", *SYNTHETIC, f"--trainer.default_root_dir={tmp_path / 'default'}", f"--ckpt_path={ckpt}"])
+    err = capfd.readouterr().err.strip()
+    assert exit_info.value.code == 1 and len(err.splitlines()) == 1, err
+    assert err.startswith(f"train.py: error: {ckpt}: ") and "state_dict" not in err, err
+    assert "SetTransformerLSTM" in err and "dim=16" in err and "dim=64" in err and "lstm_hidden=32" in err, err
+    assert "in_features" not in err, err  # only what differs
+
+
 def test_missing_and_malformed_manifests_are_one_line_errors(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys, "argv", ["train.py"])
     (tmp_path / "bad.yaml").write_text("entries: [")

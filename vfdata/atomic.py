@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import os
+import re
 import shutil
 from collections.abc import Iterable, Iterator
 from contextlib import ExitStack, contextmanager
@@ -29,6 +30,7 @@ from vfdata.errors import InputError, OutputError, OutputExistsError
 _DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 _AT_FDCWD = -100
 _RENAME_NOREPLACE = 1
+_TEMPORARY = re.compile(r"\.(?P<name>.+)\.tmp-\d+")  # `_tmp_prefix` and a process id
 
 
 @contextmanager
@@ -54,16 +56,19 @@ def atomic_output(path: str | Path, overwrite: bool = False, inputs: Iterable[st
 
 
 @contextmanager
-def atomic_outputs(paths: Iterable[str | Path], overwrite: bool = False, inputs: Iterable[str | Path] = (),
-                   ) -> Iterator[list[Path]]:
+def atomic_outputs(paths: Iterable[str | Path], overwrite: bool | Iterable[bool] = False,
+                   inputs: Iterable[str | Path] = ()) -> Iterator[list[Path]]:
     """`atomic_output` for outputs that belong together (a file and its preview): one temporary path
-    each, all published when the block succeeds, none left when it fails, and the ones already
-    published removed again if publishing a later one fails."""
+    each, all published when the block succeeds (the last first), none left when it fails, and the
+    ones already published removed again if publishing a later one fails. `overwrite`: for all, or
+    one per path."""
     paths, inputs = [Path(p) for p in paths], list(inputs)
+    replace = [overwrite] * len(paths) if isinstance(overwrite, bool) else list(overwrite)
     published: list[Path] = []
     try:
         with ExitStack() as stack:
-            temporaries = [stack.enter_context(_Member(p, overwrite, inputs, published)) for p in paths]
+            temporaries = [stack.enter_context(_Member(p, o, inputs, published))
+                           for p, o in zip(paths, replace, strict=True)]
             yield temporaries
     except BaseException:
         for path in published:
@@ -177,15 +182,23 @@ def output_os_error(path: str | Path, exc: OSError) -> OutputError | None:
     """An OSError met while writing `path` as the OutputError that names `path` (not its temporary):
     a full disk or quota, or a failure on the temporary or on `path` itself (permissions, a read-only
     file system); None for other errors (an input that cannot be read names itself)."""
-    path = Path(path)
+    path, named = Path(path), _published_name(Path(path))
     if exc.errno in _DISK_FULL:
-        return OutputError(path, "no space left on the device (or quota exceeded); nothing was written: free some "
+        return OutputError(named, "no space left on the device (or quota exceeded); nothing was written: free some "
                                  "space or write the output elsewhere")
     names = {str(exc.filename or ""), str(getattr(exc, "filename2", None) or "")}
     if any(Path(name).name.startswith(_tmp_prefix(path)) or name == str(path) for name in names if name):
-        return OutputError(path, f"cannot be written ({exc.strerror or exc}); nothing was written: check the folder's "
-                                 "permissions or write the output elsewhere")
+        return OutputError(named, f"cannot be written ({exc.strerror or exc}); nothing was written: check the folder's "
+                                  "permissions or write the output elsewhere")
     return None
+
+
+def _published_name(path: Path) -> Path:
+    """The output a temporary will be published as (a writer given the temporary of an `atomic_outputs`
+    member writes through a temporary of its own): errors name what the user asked for."""
+    while (match := _TEMPORARY.fullmatch(path.name)) is not None:
+        path = path.with_name(match["name"])
+    return path
 
 
 def _publish(tmp: Path, path: Path, overwrite: bool) -> None:

@@ -26,6 +26,7 @@ COMMANDS = [
     "export",
     "info",
     "check",
+    "sync",
     "process",
     "inspect-bag",
     "synth",

@@ -1,8 +1,11 @@
 """Where the torch work runs: `--device cpu|cuda|auto` (the tracker's SIREN fit and nearest
 neighbours, the force model, the image baselines; training through Lightning's accelerator).
 
-CPU is the default and the tested path; `auto` picks CUDA when torch sees a CUDA device; asking for
-`cuda` (or `cuda:N`) on a machine without one is one line naming the option, before any work."""
+CPU is the default and the tested path. `cuda` (or `cuda:N`) puts every part that has a GPU path
+there; asking for it on a machine without one is one line naming the option, before any work. `auto`
+puts each kind of work (`WORK`) where it measured faster on a machine with CUDA (docs/gpu.md): the
+training on the GPU, the per-frame work of `process`, `predict` and `live` on the CPU, so `auto` is
+never slower than `cpu` there, by construction."""
 
 from __future__ import annotations
 
@@ -10,16 +13,38 @@ from vfdata.errors import VisionForceError
 
 DEVICES = ("cpu", "cuda", "auto")
 DEVICE_HELP = ("where the tracker's SIREN fit and nearest neighbours and the force model run: cpu (default), "
-               "cuda (cuda:N), or auto (CUDA when present)")
+               "cuda (cuda:N), or auto (training on CUDA when present; the per-frame work, measured faster on "
+               "the CPU, stays there: docs/gpu.md)")
+
+# What `--device auto` picks on a machine with CUDA, per kind of work. Measured on one H200 against one
+# thread of the same machine's CPU (docs/gpu.md):
+# - "frames": one frame at a time, the geometry tracker in `process`, `predict` and `live`, and the force
+#   model of a stream (batch 1). The tracker alone ran 128 frames/s on the GPU against 99 on the CPU, but
+#   the stream with tracker and model on the GPU was slower than on the CPU (34.7 against 45.2 frames/s
+#   serial, 44.1 against 54.7 pipelined): transfers and kernel launches on small tensors, per frame.
+# - "recording": the force model over a processed recording (`predict`): a fraction of a second of CPU
+#   for a recording that took minutes to process, less than starting CUDA in the process costs.
+# - "training": Lightning's fit and test: the `colon` study (3 seeds) trained and tested in 102 s on the
+#   GPU (6-10 min a run on 2 CPU cores), the force network at 138,000 frames/s eager fp32, batch 16.
+WORK = ("frames", "recording", "training")
+AUTO_ON_CUDA = {"frames": "cpu", "recording": "cpu", "training": "cuda"}
 
 
-def resolve_device(name: str | None) -> str:
-    """'cpu', 'cuda' or 'cuda:N' for a `--device` value (None: cpu)."""
+def auto_device(work: str, cuda_available: bool) -> str:
+    """What `--device auto` picks for `work` (one of WORK) given whether CUDA is there."""
+    if work not in AUTO_ON_CUDA:
+        raise ValueError(f"work {work!r} is not one of {', '.join(WORK)}")
+    return AUTO_ON_CUDA[work] if cuda_available else "cpu"
+
+
+def resolve_device(name: str | None, work: str = "frames") -> str:
+    """'cpu', 'cuda' or 'cuda:N' for a `--device` value (None: cpu) and the kind of work it is for
+    (`WORK`; only `auto` depends on it)."""
     import torch
 
     name = (name or "cpu").strip().lower()
     if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+        return auto_device(work, torch.cuda.is_available())
     if name == "cpu":
         return "cpu"
     if name == "cuda" or (name.startswith("cuda:") and name[5:].isdigit()):

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vfdata import __version__
-from vfdata.atomic import atomic_output, check_output
+from vfdata.atomic import atomic_outputs, check_output, output_os_error
 from vfdata.confidence import Confidence, assess, edge_support
 from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
@@ -239,7 +239,10 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
     results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
     first = None
     areas, supports, visibles = [], [], []  # what the verdict on the recording weighs (vfdata.confidence)
-    with DerivedWriter(out, overwrite=overwrite, inputs=(src,), camera_frame_id=rec.camera_frame_id) as writer:
+    # One transaction: the MCAP and its picture (which replaces an older one) are written to temporaries
+    # and published together at the end; neither is left without the other.
+    with atomic_outputs([preview_path(out), out], overwrite=(True, overwrite), inputs=[src]) as (png_tmp, mcap_tmp), \
+            DerivedWriter(mcap_tmp, overwrite=True, camera_frame_id=rec.camera_frame_id) as writer:
         bar = tqdm(total=n_frames, desc=f"process {src.name}", unit="frame", disable=not options.progress)
         for result in results:
             t = engine.clock.now()
@@ -265,17 +268,23 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
                             np.array(visibles) if visibles else None)
         if confidence.doubtful:
             log.warning(f"warning: {src}: doubtful: {confidence.describe()}")
+        preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm,
+                                      engine.prompt.box, warning=("doubtful: " + ", ".join(confidence.reasons))
+                                      if confidence.doubtful else ORIGIN_CUT_WARNING if engine.origin_cut else None)
+        _write_png(png_tmp, preview, preview_path(out))
         writer.close(_metadata(rec, src, options, engine, n_frames, threads, confidence))
-    preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm, engine.prompt.box,
-                                  warning=("doubtful: " + ", ".join(confidence.reasons)) if confidence.doubtful
-                                  else ORIGIN_CUT_WARNING if engine.origin_cut else None)
-    # Written once the MCAP is complete; it describes that MCAP, so it replaces an older picture.
-    with atomic_output(preview_path(out), overwrite=True, inputs=[src]) as tmp:
-        ok, data = cv2.imencode(".png", preview)
-        if not ok:
-            raise VisionForceError(f"{preview_path(out)}: the first-frame preview could not be encoded as PNG")
-        tmp.write_bytes(data.tobytes())
     return out
+
+
+def _write_png(tmp: Path, image: np.ndarray, name: Path) -> None:
+    """The preview `name` into its temporary `tmp`; its errors name the preview, not the MCAP."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise VisionForceError(f"{name}: the first-frame preview could not be encoded as PNG")
+    try:
+        tmp.write_bytes(data.tobytes())
+    except OSError as exc:
+        raise output_os_error(name, exc) or exc from exc
 
 
 def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameEngine, frames: int,

@@ -31,6 +31,7 @@ from vfdata.errors import InputError
 from vfdata.recon import Prompt
 from vfdata.recording import Recording, layout
 from vfdata.recording.messages import CameraInfo
+from vfdata.video_log import quiet_ffmpeg_log
 
 _END = object()
 
@@ -184,6 +185,7 @@ def _capture_target(source: str) -> int | str:
 
 
 def _open_capture(source: str) -> cv2.VideoCapture:
+    quiet_ffmpeg_log()  # our line names the source; FFmpeg's own would come first
     capture = cv2.VideoCapture(_capture_target(source))
     if not capture.isOpened():
         raise InputError(Path(source), "video source cannot be opened (device index, video file or stream URL)")

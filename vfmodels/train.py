@@ -16,6 +16,7 @@ See docs/models.md (configs, ablations, baselines, multi-GPU/multi-node).
 
 from __future__ import annotations
 
+import copy
 import inspect
 import sys
 from pathlib import Path
@@ -24,6 +25,7 @@ from jsonargparse.typing import PositiveInt
 from lightning.pytorch import LightningDataModule
 from lightning.pytorch.callbacks import ProgressBar
 from lightning.pytorch.cli import LightningCLI
+from torch import nn
 
 from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--data.help ForceDataModule` resolves
 from vfdata.errors import InputError, VisionForceError
@@ -35,6 +37,7 @@ from vfmodels.epoch_timer import EpochTimer
 from vfmodels.prediction_writer import ForceEstimateWriter
 from vfmodels.progress import RunProgressBar
 from vfmodels.quiet import quiet_lightning
+from vfmodels.registry import MODELS, class_path
 from vfmodels.regressor import ForceRegressor, read_checkpoint
 from vfmodels.run_folder import closing_line, remove_new_entries, run_entries
 
@@ -107,6 +110,58 @@ def check_checkpoint(ckpt_path: str | Path | None) -> None:
                                     "build from them")
 
 
+def check_checkpoint_fits(ckpt_path: str | Path, regressor: ForceRegressor) -> None:
+    """An InputError naming the checkpoint when its weights do not fit the model the --config builds (a
+    point-cloud checkpoint under proposed.yaml, the same network at other sizes): which model it holds
+    against the config's, instead of Lightning's `Error(s) in loading state_dict for ForceRegressor`."""
+    if ckpt_path is None or not Path(ckpt_path).is_file():
+        return  # Lightning's own names ("last", "hpc", ...) are left to it
+    checkpoint = read_checkpoint(ckpt_path)
+    try:  # on a copy, exactly as Lightning will load it (strict; the statistics' shapes adopted)
+        copy.deepcopy(regressor).load_state_dict(checkpoint["state_dict"])
+        return
+    except RuntimeError as exc:
+        detail = str(exc).splitlines()[1].strip() if len(str(exc).splitlines()) > 1 else str(exc)
+    saved = checkpoint.get("force_model") if isinstance(checkpoint.get("force_model"), dict) else {}
+    held, built = _model_name(saved.get("class_path")), _model_name(class_path(regressor.model))
+    ours = dict(getattr(regressor.model, "config", {}))
+    theirs = saved.get("init_args") if isinstance(saved.get("init_args"), dict) else {}
+    if not saved:
+        what = f"holds weights of another model than the --config's {built} ({detail})"
+    elif held != built:
+        what = f"holds a {held} model; the --config builds a {built}"
+    else:
+        keys = [k for k in dict.fromkeys([*theirs, *ours]) if theirs.get(k) != ours.get(k)]
+        what = (f"holds a {held}({_args(theirs, keys)}); the --config builds a {built}({_args(ours, keys)})" if keys
+                else f"holds a {held} whose weights do not fit the --config's ({detail})")
+    raise InputError(ckpt_path, f"{what}: use a checkpoint with the config it was trained with (its run saved it as "
+                                "csv/version_N/config.yaml)")
+
+
+def _config_network(model_config) -> nn.Module | None:
+    """The network a parsed config's `model.model` builds, when it is one of `vfmodels.registry`'s (None
+    otherwise: the check then waits for the CLI to build it). Pretrained-weight files are not read."""
+    network = getattr(model_config, "model", None)
+    name = str(getattr(network, "class_path", "")).rpartition(".")[2]
+    if name not in MODELS or not str(network.class_path).startswith("vfmodels."):
+        return None
+    init_args = dict(vars(network.init_args)) if getattr(network, "init_args", None) is not None else {}
+    if "weights_path" in init_args:
+        init_args["weights_path"] = None
+    try:
+        return MODELS[name](**init_args)
+    except (TypeError, ValueError):
+        return None  # the CLI says what is wrong with the arguments when it builds the model
+
+
+def _model_name(path: object) -> str:
+    return str(path or "model").rpartition(".")[2]
+
+
+def _args(values: dict, keys: list[str]) -> str:
+    return ", ".join(f"{k}={values.get(k)}" for k in keys)
+
+
 class ForceCLI(LightningCLI):
     def __init__(self, *args, argv: list[str] | None = None, **kwargs) -> None:
         self.argv = list(sys.argv[1:] if argv is None else argv)  # for the closing line's test command
@@ -161,6 +216,7 @@ class ForceCLI(LightningCLI):
         if kwargs.get("ckpt_path") == "best" and callback is not None and not callback.best_model_path:
             kwargs["ckpt_path"] = str(best_checkpoint(callback.dirpath))
         check_checkpoint(kwargs.get("ckpt_path"))
+        check_checkpoint_fits(kwargs.get("ckpt_path"), self.model)
         # Lightning's own load then reads tensors only too, whatever torch's default (pyproject: torch>=2.4).
         kwargs["weights_only"] = True
 
@@ -172,6 +228,11 @@ class ForceCLI(LightningCLI):
             if ckpt_path and ckpt_path != "best":
                 check_checkpoint(ckpt_path)
         super()._parse_ckpt_path()
+        if subcommand and ckpt_path and ckpt_path != "best":
+            # Before the trainer starts (and says which accelerators it found): the one line comes alone.
+            network = _config_network(self.config[subcommand].get("model"))
+            if network is not None:
+                check_checkpoint_fits(ckpt_path, ForceRegressor(network))
 
     before_validate = before_test = before_predict = _resolve_checkpoint
 
@@ -241,3 +302,7 @@ def main(args: list[str] | None = None) -> None:
             print(f"train.py: error: {type(exc).__name__}: {text} (run `python train.py --debug ...` for the "
                   "traceback)", file=sys.stderr)
         sys.exit(1)
+
+
+if __name__ == "__main__":  # `python -m vfmodels.train ...`: train.py for an installed package
+    main()

@@ -4,6 +4,7 @@ dataset) to a recording MCAP; `vfdata convert LEROBOT_DATASET OUT_DIR`: every ep
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from vfdata.commands.inspect_bag import add_bag_arguments, add_force_gap_argument, bag_arguments, force_gap_option_ns
@@ -16,6 +17,8 @@ from vfdata.conversion.raw_meta import parse_meta_pairs
 from vfdata.conversion.raw_rgbd import convert_rgbd_folder, is_rgbd_folder
 from vfdata.errors import InputError
 from vfdata.lerobot.folder import is_lerobot_dataset
+
+MAX_TIME_OFFSET_MS = 3_600_000.0  # an hour: a larger offset is another clock, not a latency
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,6 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reencode", action="store_true",
                    help="re-encode colour JPEG input frames at --quality (default: store them as they are)")
     add_force_gap_argument(p)
+    p.add_argument("--time-offset-ms", type=float, default=0.0, metavar="MS",
+                   help="how late the force and pose stamps run against the video's, ms (negative: early), as "
+                        "`vfdata sync` estimates it; they are moved onto the video's clock (default 0)")
     p.add_argument("--workers", type=int, default=None,
                    help=f"image encoding threads (default: one per CPU core, at most {MAX_DEFAULT_WORKERS}; "
                         f"{default_workers()} here)")
@@ -68,10 +74,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not 1 <= args.quality <= 100:
         raise InputError("--quality", f"JPEG quality must be 1-100, not {args.quality}")
+    if not math.isfinite(args.time_offset_ms) or abs(args.time_offset_ms) > MAX_TIME_OFFSET_MS:
+        raise InputError("--time-offset-ms", f"must be a number of milliseconds within +-{MAX_TIME_OFFSET_MS:g}, "
+                                             f"not {args.time_offset_ms}")
     threads = {"workers": args.workers} if args.workers else {}  # else ConvertOptions' default
     options = ConvertOptions(
         image_format=args.image_format, jpeg_quality=args.quality, keep_jpeg=not args.reencode,
-        force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet, **threads,
+        force_gap_tolerance_ns=force_gap_option_ns(args), progress=not args.quiet,
+        time_offset_ns=round(args.time_offset_ms * 1e6), **threads,
     )
     if is_lerobot_dataset(args.src):
         return _convert_lerobot(args, options)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 from array import array
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -82,7 +83,9 @@ def force_gap_option_ns(args: argparse.Namespace) -> int | None:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("inspect-bag", help="list a ROS bag's topics and which ones convert would use",
                        description="List the topics of a ROS 1 (.bag) or ROS 2 (folder, .db3, .mcap) bag with "
-                                   "types, counts and rates, and say which ones `vfdata convert` would read.")
+                                   "types, counts and rates, and say which ones `vfdata convert` would read. "
+                                   "Exits 0 when convert would succeed, 1 (after the listing, with the reason "
+                                   "in one line) when it would stop.")
     p.add_argument("bag", type=Path, help="ROS 1 .bag file or ROS 2 bag folder")
     add_bag_arguments(p)
     add_force_gap_argument(p)
@@ -92,16 +95,32 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     kwargs = bag_arguments(args)
-    print(inspect_bag_text(args.bag, kwargs["topics"], kwargs["calibration"], kwargs["pair_tolerance_ns"],
-                           force_gap_option_ns(args), progress=not args.quiet))
+    report = inspect_bag(args.bag, kwargs["topics"], kwargs["calibration"], kwargs["pair_tolerance_ns"],
+                         force_gap_option_ns(args), progress=not args.quiet)
+    print(report.text, flush=True)
+    if report.problem is not None:  # listed above; a script checking the bag sees it in the exit status
+        raise InputError(args.bag, f"cannot convert: {report.problem}")
     return 0
+
+
+@dataclass(frozen=True)
+class BagReport:
+    text: str  # what `vfdata inspect-bag` prints
+    problem: str | None  # why `vfdata convert` would stop; None when it would convert
 
 
 def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = None, calibration: Path | None = None,
                      pair_tolerance_ns: int | None = None, force_gap_ns: int | None = None,
                      progress: bool = False) -> str:
-    """The report printed by `vfdata inspect-bag`. A bag that cannot be converted is still listed,
-    with the reason under "conversion"."""
+    """The report printed by `vfdata inspect-bag` (`inspect_bag(...).text`)."""
+    return inspect_bag(path, topics, calibration, pair_tolerance_ns, force_gap_ns, progress).text
+
+
+def inspect_bag(path: str | Path, topics: bag_topics.BagTopics | None = None, calibration: Path | None = None,
+                pair_tolerance_ns: int | None = None, force_gap_ns: int | None = None,
+                progress: bool = False) -> BagReport:
+    """What a bag holds and whether it converts. A bag that cannot be converted is still listed, with
+    the reason under "conversion" (and in `problem`)."""
     path = Path(path)
     lines = []
     with bag_scan.open_bag(path) as reader:
@@ -135,10 +154,10 @@ def inspect_bag_text(path: str | Path, topics: bag_topics.BagTopics | None = Non
     lines.append("conversion:")
     if scan is None:
         lines.append(f"  cannot convert: {problem}")
-        return "\n".join(lines)
+        return BagReport("\n".join(lines), problem)
     lines.append(f"  reading: {reading}")
-    lines.extend(_conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns))
-    return "\n".join(lines)
+    conversion, problem = _conversion_lines(scan, calibration, pair_tolerance_ns, force_gap_ns)
+    return BagReport("\n".join(lines + conversion), problem)
 
 
 def receive_times(reader: AnyReader, path: Path, progress: bool = False) -> dict[str, np.ndarray]:
@@ -173,7 +192,8 @@ def _used_topics(choice: bag_topics.TopicChoice | None) -> dict[str, str]:
 
 
 def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tolerance_ns: int | None,
-                      force_gap_ns: int | None) -> list[str]:
+                      force_gap_ns: int | None) -> tuple[list[str], str | None]:
+    """The "conversion" section's lines, and the problem that would stop convert (None: it converts)."""
     lines = []
     for stream in (scan.left, scan.right):
         lines.append(f"  {stream.topic}: {stream.count} frames, {stream.width}x{stream.height} {stream.encoding}"
@@ -185,7 +205,7 @@ def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tol
         plan = bags.plan_pairs(scan, pair_tolerance_ns)
     except InputError as exc:
         lines.append(f"  cannot convert: {exc.problem}")
-        return lines
+        return lines, exc.problem
     lines.append(f"  stereo pairs: {len(plan.stamps_ns)} within {plan.tolerance_ns / 1e6:.1f} ms (largest offset "
                  f"{plan.max_offset_ns / 1e6:.3f} ms); unpaired: {plan.unpaired_left} left, "
                  f"{plan.unpaired_right} right")
@@ -202,9 +222,9 @@ def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tol
             bags.check_force_span(scan, plan, force_gap_ns)
         except InputError as exc:
             lines.append(f"  cannot convert: {exc.problem}")
-            return lines
+            return lines, exc.problem
         lines.append("  ready to convert (RGB-D layout)")
-        return lines
+        return lines, None
     try:
         calib = StereoCalibration.load(calibration) if calibration is not None else None
         _left, right, tf, source = bags.camera_model(scan, calib, calibration)
@@ -213,6 +233,6 @@ def _conversion_lines(scan: bag_scan.BagScan, calibration: Path | None, pair_tol
         bags.check_force_span(scan, plan, force_gap_ns)
     except InputError as exc:
         lines.append(f"  cannot convert: {exc.problem}")
-        return lines
+        return lines, exc.problem
     lines.append("  ready to convert")
-    return lines
+    return lines, None

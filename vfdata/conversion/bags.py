@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -229,6 +229,7 @@ def convert_bag(src: str | Path, out: str | Path, overwrite: bool = False, optio
             choice = choose_topics(src, types, asked, use_camera_info=calib is None)
         scan = scan_bag(reader, src, choice, progress=options.progress)
         try:
+            _sensors_on_video_clock(scan, options)
             if rgbd is not None:
                 plan = plan_pairs(scan, pair_tolerance_ns)
                 check_force_span(scan, plan, options.force_gap_tolerance_ns)
@@ -273,6 +274,15 @@ def _convert_scanned(reader: AnyReader, src: Path, out: Path, overwrite: bool, o
         },
     )
     _write(reader, scan, plan, out, overwrite, options, record, info_l, info_r, tf)
+
+
+def _sensors_on_video_clock(scan: BagScan, options: ConvertOptions) -> None:
+    """The scan's force and pose stamps moved by `--time-offset-ms` (ConvertOptions.on_video_clock)."""
+    for name in ("force", "pose"):
+        series = getattr(scan, name)
+        if series is not None:
+            stamps, = options.on_video_clock((series.stamps_ns,), scan.path)
+            setattr(scan, name, replace(series, stamps_ns=stamps))
 
 
 def check_force_span(scan: BagScan, plan: PairPlan, tolerance_ns: int | None) -> None:

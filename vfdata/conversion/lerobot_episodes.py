@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -225,6 +225,9 @@ def convert_lerobot_episode(src: str | Path, episode: int, out: str | Path, over
     if clock not in CLOCKS:
         raise InputError("--clock", f"{clock!r}: choose {' or '.join(CLOCKS)}")
     tables = read_tables(ds, ep, choice, clock)
+    # --time-offset-ms: the force and pose onto the video's clock, as the other converters do
+    tables = replace(tables, force=options.on_video_clock(tables.force, ep.data_file),
+                     pose=options.on_video_clock(tables.pose, ep.data_file))
     check_force_covers(ep.data_file, tables.force[0], tables.frame_ns, options.force_gap_tolerance_ns)
     name = f"{ds.name} episode {episode}"
     default_id = f"{ds.name}_episode_{episode:06d}"

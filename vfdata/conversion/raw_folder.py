@@ -50,6 +50,7 @@ def convert_raw_folder(src: str | Path, out: str | Path, overwrite: bool = False
     check_output(out, overwrite, inputs=[src])
     calib = StereoCalibration.load(src / "calibration.yaml")
     frame_ns, force, pose = read_folder_tables(src)
+    force, pose = options.on_video_clock(force, src / "force.csv"), options.on_video_clock(pose, src / "ecm_pose.csv")
     meta = {**read_meta(src / "meta.yaml"), **(meta or {})}
     source = StereoSource(src)
     if source.count != len(frame_ns):

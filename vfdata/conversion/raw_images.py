@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 
 from vfdata.errors import InputError
+from vfdata.video_log import quiet_ffmpeg_log
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
@@ -78,6 +79,7 @@ def _find_video(folder: Path, stem: str) -> Path | None:
 
 
 def _open_video(path: Path) -> cv2.VideoCapture:
+    quiet_ffmpeg_log()  # our line names the file; FFmpeg's own would come first
     capture = cv2.VideoCapture(str(path))
     if not capture.isOpened():
         raise InputError(path, "video cannot be opened")

@@ -88,6 +88,7 @@ def convert_rgbd_folder(src: str | Path, out: str | Path, overwrite: bool = Fals
     check_output(out, overwrite, inputs=[src, calib_path, meta_path])
     calib = RgbdCalibration.load(calib_path)
     frame_ns, force, pose = read_folder_tables(src)
+    force, pose = options.on_video_clock(force, src / "force.csv"), options.on_video_clock(pose, src / "ecm_pose.csv")
     meta_values = read_meta(meta_path)
     depth_files = _images(src / "depth")
     color_files = _images(src / "color") if (src / "color").is_dir() else None

@@ -8,7 +8,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
@@ -195,6 +195,8 @@ def write_recording(out: Path, overwrite: bool, options: ConvertOptions, record:
     and the transform (stamped with the first frame) come from the camera model. `name` labels the
     progress bar."""
     first = int(frame_ns[0])
+    if options.time_offset_ns:  # the recording says that its sensors were moved onto the video's clock
+        record = replace(record, extra={**record.extra, "sensor_time_offset_ns": str(options.time_offset_ns)})
     # The ECM pose also on /tf (world -> ecm), as ROS tools expect a moving frame.
     series = [*series, *(StampedSeries(layout.TF, TFMessage.msgtype, s.stamps_ns, s.values, s.frame_id,
                                        layout.ECM_FRAME) for s in series if s.topic == layout.ECM_POSE)]

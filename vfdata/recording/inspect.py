@@ -119,8 +119,8 @@ def check_file(path: str | Path) -> list[str]:
     path = Path(path)
     try:
         rec = Recording.open(path, damaged="skip")
-    except VisionForceError as exc:
-        return [str(exc)]
+    except VisionForceError as exc:  # the problem alone when it is this file's: the caller names the file
+        return [exc.problem if getattr(exc, "path", None) == path and hasattr(exc, "problem") else str(exc)]
     problems = list(rec.problems)
     problems += _check_data_crc(rec)
     index = rec._mcap.index

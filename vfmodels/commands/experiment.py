@@ -44,8 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "processes, runs one after the other) or ray (one task per recording and per run on a Ray "
                         "cluster sharing OUT's file system: docs/cluster.md; the 'ray' extra)")
     p.add_argument("--device", default="cpu",
-                   help="cpu (default), cuda or auto (CUDA when present): the geometry tracker of the processing "
-                        "and the training runs (Lightning's accelerator)")
+                   help="cpu (default), cuda or auto: the geometry tracker of the processing and the training runs "
+                        "(Lightning's accelerator); auto: the training on CUDA when present, the processing on the "
+                        "CPU (measured faster there: docs/gpu.md)")
     p.add_argument("--ray-address", help="the Ray cluster (default: the running one, or a new local instance; "
                                          "'auto': the cluster this machine belongs to)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames of each recording (quick runs)")

@@ -56,7 +56,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pipelined", action="store_true",
                    help="image stages of the next frame in a second thread (2 cores; one more frame of delay)")
     p.add_argument("--device", default="cpu", help="where the tracker's SIREN fit and nearest neighbours and the "
-                                                   "force model run: cpu (default), cuda (cuda:N), auto")
+                                                   "force model run: cpu (default), cuda (cuda:N), auto (the CPU: "
+                                                   "one frame at a time measured faster there, docs/gpu.md)")
     p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no summary line")
     p.set_defaults(func=run)
@@ -104,7 +105,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfmodels.live_session import LiveSession
 
     import_foxglove()  # the missing extra is said before anything else is opened
-    device = resolve_device(args.device)
+    device = resolve_device(args.device, "frames")  # the tracker and the model, one frame at a time
     from vfmodels.predict import prediction_tracker
 
     ckpt = checkpoint_file(args.ckpt)

@@ -70,10 +70,12 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     args.ckpt = checkpoint_file(args.ckpt)
-    args.device = resolve_device(args.device)
+    # the tracker and a stream's model go frame by frame; offline, the model runs over the whole recording
+    args.tracker_device = resolve_device(args.device, "frames")
+    args.device = resolve_device(args.device, "frames" if args.stream else "recording")
     from vfmodels.predict import prediction_tracker
 
-    args.tracker, args.tracker_options = prediction_tracker(args.ckpt, args.device, args.tracker)
+    args.tracker, args.tracker_options = prediction_tracker(args.ckpt, args.tracker_device, args.tracker)
     if args.stream:
         return _stream(args)
     from vfdata.processing import ProcessOptions

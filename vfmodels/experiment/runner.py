@@ -6,10 +6,11 @@ Steps (docs/experiments.md):
 1. Prepare (`prepare`): convert and process every recording, once per tracker the variants need; a
    manifest per tracker is written to `OUT/manifests/`.
 2. Train and test each variant x seed through the project's LightningCLI (`vfmodels.train`) with the
-   variant's config from `configs/`: best checkpoint by validation loss, then `trainer.predict` over
-   the test split. Each run folder `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames:
-   recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run
-   with a metrics.json is finished and is not repeated, so an interrupted grid resumes.
+   variant's config from the package's configs (`vfmodels.config_files`; the tree's `configs/`): best
+   checkpoint by validation loss, then `trainer.predict` over the test split. Each run folder
+   `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames: recording, orientation_deg,
+   frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run with a metrics.json is
+   finished and is not repeated, so an interrupted grid resumes.
 3. Report (`vfmodels.experiment.report`): Tables I-III, the timing table and the figures into OUT/.
 """
 
@@ -35,6 +36,7 @@ from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfdata.recording.derived import read_confidence
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
+from vfmodels.config_files import CONFIGS
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
@@ -46,7 +48,6 @@ from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
 
 # Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
 PAPER_PROTOCOL = ("--early_stopping.patience=null",)
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 log = logging.getLogger(__name__)
 
 
@@ -63,7 +64,7 @@ class ExperimentOptions:
     workers: int = 1  # recordings processed in parallel processes (executor local)
     executor: str = "local"  # where processing jobs and training runs go: local, or ray (docs/cluster.md)
     ray_address: str | None = None  # the Ray cluster (None: the running one, or a new local instance)
-    device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (Lightning accelerator)
+    device: str = "cpu"  # cpu, cuda, auto: the geometry tracker's and the training's (vfdata.device: auto)
     max_frames: int | None = None  # process only the first N frames of each recording (quick runs)
     keep_doubtful: bool = False  # train and validate on recordings `vfdata process` judged doubtful too
     train_args: list[str] = field(default_factory=list)  # extra LightningCLI arguments for every run
@@ -208,13 +209,13 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
-    device = resolve_device(options.device)
-    if device != "cpu":
-        options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(device)}",
+    training = resolve_device(options.device, "training")
+    if training != "cpu":
+        options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(training)}",
                                                *options.train_args])
     seconds = prepare(list(manifest.entries), trackers, options.depth, options.segment, options.prompt,
                       options.max_frames, options.workers, options.progress, options.executor, options.ray_address,
-                      device)
+                      resolve_device(options.device, "frames"))
     seconds["convert"] += convert_seconds
     manifests, doubtful = {}, []
     for t in trackers:
