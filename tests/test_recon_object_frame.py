@@ -168,10 +168,9 @@ def _occluder_band(rng, rotation, n, length=60.0, r_wide=10.0, distance=120.0, r
 
 
 @pytest.mark.parametrize("seed", [2, 3, 4])
-def test_cross_check_recovers_the_axis_an_occluder_band_turned(seed):
-    """The band stays in the metal-free cloud (an occluder not grey enough to be seen as metal); its frontal
-    part, without the band, disagrees by more than the switch and is taken."""
-    from vfdata.recon.tissue_frame import AXIS_CHECK_DEG, checked_axis
+def test_the_roundest_fit_is_taken_over_one_an_occluder_band_turned(seed):
+    """The band is in the whole cloud; a cloud without it (the frontal part) gives the round tube."""
+    from vfdata.recon.tissue_frame import chosen_axis
 
     rng = np.random.default_rng(seed)
     rotation = _side_view_rotation(rng)
@@ -179,23 +178,36 @@ def test_cross_check_recovers_the_axis_an_occluder_band_turned(seed):
     cloud = np.vstack([tube, _occluder_band(rng, rotation, 1000)])
     true_z = rotation[:, 2]
     assert _angle_deg(estimate_object_frame(cloud).z_axis, true_z) > 15.0, "the band must turn the plain fit"
-    axis, diagnostics = checked_axis(cloud, cloud, tube)
-    assert _angle_deg(axis.direction, true_z) < 3.0
-    assert diagnostics["axis_from"] == "frontal" and diagnostics["axis_check_deg"] > AXIS_CHECK_DEG
+    axis, diagnostics = chosen_axis({"cloud": cloud, "clean": cloud, "frontal": tube})
+    assert _angle_deg(axis.direction, true_z) < 3.0 and diagnostics["axis_from"] == "frontal"
+    assert diagnostics["axis_fits"]["cloud"]["deg"] > 15.0 and not diagnostics["axis_doubtful"]
+    fits = diagnostics["axis_fits"]
+    assert fits["frontal"]["residual"] < fits["cloud"]["residual"]
 
 
-def test_the_metal_free_cloud_gives_the_axis_and_the_whole_cloud_is_only_a_fallback():
-    from vfdata.recon.tissue_frame import checked_axis
+def test_a_cloud_too_small_to_trust_is_not_fitted_and_a_flat_one_is_doubtful():
+    from vfdata.recon.tissue_frame import chosen_axis
 
     rng = np.random.default_rng(2)
+    tube = tapered_tube(rng, _side_view_rotation(rng))
+    _axis, diagnostics = chosen_axis({"cloud": tube, "clean": tube[:100], "frontal": tube[::2]})
+    assert "clean" not in diagnostics["axis_fits"]  # an instrument over most of the tissue: not judged on it
+    sheet = np.stack([rng.uniform(-30, 30, 3000), rng.uniform(-10, 10, 3000), 100 + rng.normal(0, 0.3, 3000)], 1)
+    _axis, diagnostics = chosen_axis({"cloud": sheet})
+    assert diagnostics["axis_doubtful"]  # the bed, not a tube: no axis fits it
+
+
+def test_tube_residual_is_small_about_the_true_axis_and_grows_with_its_tilt():
+    from vfdata.recon.tube_axis import TubeAxis, tube_residual
+
+    rng = np.random.default_rng(4)
     rotation = _side_view_rotation(rng)
     tube = tapered_tube(rng, rotation)
-    cloud = np.vstack([tube, _occluder_band(rng, rotation, 1000)])
-    axis, diagnostics = checked_axis(cloud, tube, tube[::2])  # the band was near metal: not in the clean cloud
-    assert _angle_deg(axis.direction, rotation[:, 2]) < 3.0
-    assert diagnostics["axis_from"] == "clean" and diagnostics["axis_fits_deg"]["cloud"] > 15.0
-    axis, diagnostics = checked_axis(cloud, tube[:200], tube[:100])  # an instrument over most of the tissue
-    assert diagnostics["axis_from"] == "cloud" and "clean" not in diagnostics["axis_fits_deg"]
+    centre = np.array([0.0, 0.0, 120.0])  # the tube's axis passes here (tapered_tube's distance)
+    true = tube_residual(tube, TubeAxis(rotation[:, 2], centre, 0.0, len(tube)))
+    tilted_z = rotation[:, 2] * np.cos(np.radians(15)) + rotation[:, 0] * np.sin(np.radians(15))
+    tilted = tube_residual(tube, TubeAxis(tilted_z, centre, 0.0, len(tube)))
+    assert true < 0.05 and tilted > 2 * true
 
 
 def test_size_points_decide_the_wide_end():

@@ -313,7 +313,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         # the axis fits and the clamped end's cues (vfdata.recon.tissue_frame), and the verdict (vfdata.confidence)
         "object_frame_check": json.dumps(_jsonable({k: v for k, v in engine.frame.diagnostics.items()
-                                                    if k in ("axis_from", "axis_check_deg", "axis_fits_deg", "end",
+                                                    if k in ("axis_from", "axis_doubtful", "axis_fits", "end",
                                                              "doubtful")})),
         "confidence": json.dumps(_jsonable(confidence.to_dict())),
         "doubtful": str(confidence.doubtful).lower(),

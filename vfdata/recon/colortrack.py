@@ -43,6 +43,9 @@ class ColorTrackSettings:
     growth_slope: float = 1.0  # ... and per working pixel of distance outside it (steeper: the bed has
     # patches the colour of shaded tissue, which a gentle slope lets the mask creep into)
     max_growth_px: int = 12  # the mask may grow at most this far (working px) per frame
+    ramp_gate_mm: float = 12.0  # first frame: box pixels this far off the tissue's depth ramp are probably bed
+    # (vfdata.recon.depth_ramp). 18 let in the bed beside a near end the tube sags toward (IoU 0.46 and 0.72 on
+    # two fresh colon views into depth, 0.94 and 0.89 at 12); 9 lost most of a tube an instrument crosses (0.66)
     depth_tolerance_mm: float = 6.0  # depth cue: slack on the tissue's depth range ...
     depth_jump: float = 0.04  # ... a depth step over this fraction of the tissue depth per working pixel
     depth_penalty: float = 6.0  # ... is an edge; both get this log-odds penalty
@@ -194,7 +197,7 @@ class ColorTrackSegmenter(Segmenter):
             seed = next((usable & where for where in (points, middle, np.ones_like(usable))
                          if (usable & where).sum() >= 20), inside > 0)
             # The tissue's depth follows a ramp across the box where it runs into depth (vfdata.recon.depth_ramp).
-            gate = ramp_gate(inside, usable, seed, self.settings.depth_tolerance_mm * 3)
+            gate = ramp_gate(inside, usable, seed, self.settings.ramp_gate_mm)
             region = gc[by : by + bh, bx : bx + bw]
             region[(inside > 0) & ~gate & (region == cv2.GC_PR_FGD)] = cv2.GC_PR_BGD
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)

@@ -88,6 +88,29 @@ def tube_axis(points: np.ndarray, *, steps: int = CANDIDATE_STEPS, refine: int =
     return TubeAxis(axis / np.linalg.norm(axis), centre + line_point, float(np.rad2deg(score)), len(pts))
 
 
+def tube_residual(points: np.ndarray, axis: TubeAxis, n_slabs: int = 12) -> float:
+    """How far an (N, 3) cloud is from a round tube about `axis`: per slab along it (2nd to 98th
+    percentile), the median of |r - R| / R over its points, r a point's distance from the axis and R the
+    slab's median; the median over the slabs with 20 points or more (inf without any). A tube's visible
+    surface about its true axis gives a few percent; about a tilted axis, or with bed or instrument depth
+    among the points, tens of percent."""
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts[np.isfinite(pts).all(axis=1)] - axis.point
+    t = pts @ axis.direction
+    radial = np.linalg.norm(pts - np.outer(t, axis.direction), axis=1)
+    if len(t) == 0:
+        return float("inf")
+    edges = np.percentile(t, np.linspace(2, 98, n_slabs + 1))
+    slab = np.searchsorted(edges, t, side="right") - 1
+    spreads = []
+    for k in range(n_slabs):
+        r = radial[slab == k]
+        if len(r) >= 20:
+            median = np.median(r)
+            spreads.append(np.median(np.abs(r - median)) / max(median, 1e-9))
+    return float(np.median(spreads)) if spreads else float("inf")
+
+
 def hemisphere_directions(steps: int = CANDIDATE_STEPS) -> np.ndarray:
     """(steps*steps, 3) unit directions covering the hemisphere z >= 0: `steps` polar angles (cell
     centres from the pole to the equator) times `steps` azimuths. A hemisphere suffices because a
