@@ -3,24 +3,37 @@ PY ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-# PyTorch 2.14.1 is a CUDA build: with its libraries a new venv takes about 7.5 GB.
-MIN_FREE_KB ?= 8000000
+# PyTorch: the CUDA build (2.14.1 with torchvision; its CUDA libraries make the venv about 8 GB) where
+# the disk has room for it, else the CPU build (2.13.0+cpu, a venv of about 3.5 GB). CI's clean clone
+# has about 6.5 GB free, where the CUDA build ran out of disk inside pip. `make setup TORCH=cuda` or
+# `TORCH=cpu` chooses. torchvision is left out of the CPU build: PyPI's wheels are built for the CUDA
+# torch and do not import beside the CPU one; only the optional Faster R-CNN prompt needs it.
+TORCH ?= auto
+CUDA_FREE_KB := 8500000
+CPU_FREE_KB := 4000000
+TORCH_CUDA := torch==2.14.1 torchvision==0.29.1
+TORCH_CPU := torch==2.13.0+cpu
+TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
 VENV_DIR = $(dir $(abspath $(VENV)))
-
-.PHONY: setup quickstart test test-slow lint bench
+PIP := $(BIN)/pip install -q --no-cache-dir
 
 $(STAMP): pyproject.toml
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
 		(apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null || \
 		echo "warning: could not install libusb-1.0-0 (open3d needs it)"; fi
-	@# Skipped once torch imports, so that a set-up that ran out of disk inside pip is checked again.
-	@$(BIN)/python -c 'import torch' 2>/dev/null || { mkdir -p $(VENV_DIR) && \
-		[ $$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}') -ge $(MIN_FREE_KB) ]; } || \
-		{ echo "error: $(VENV_DIR): a new $(VENV) needs about 8 GB free (PyTorch and its CUDA libraries), $$(df -Ph $(VENV_DIR) | awk 'NR==2 {print $$4}') free"; exit 1; }
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q --no-cache-dir torch==2.14.1 torchvision==0.29.1
-	$(BIN)/pip install -q -e '.[dev]'
+	@# Skipped once torch imports, so that a set-up that ran out of disk inside pip is checked again.
+	@$(BIN)/python -c 'import torch' 2>/dev/null || { \
+		free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); kind=$(TORCH); \
+		if [ $$kind = auto ]; then kind=cpu; [ $$free -ge $(CUDA_FREE_KB) ] && kind=cuda; fi; \
+		need=$(CPU_FREE_KB); [ $$kind = cuda ] && need=$(CUDA_FREE_KB); \
+		if [ $$free -lt $$need ]; then echo "error: $(VENV_DIR): PyTorch's $$kind build needs about" \
+			"$$((need / 1000000)) GB free, $$((free / 1000000)) GB free"; exit 1; fi; \
+		echo "PyTorch: the $$kind build ($$((free / 1000000)) GB free)"; \
+		if [ $$kind = cuda ]; then $(PIP) $(TORCH_CUDA); \
+		else $(PIP) $(TORCH_CPU) 2>/dev/null || $(PIP) --extra-index-url $(TORCH_CPU_INDEX) $(TORCH_CPU); fi; }
+	$(PIP) -e '.[dev]'
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -159,3 +159,40 @@ def _has_foxglove() -> bool:
     except ImportError:
         return False
     return True
+
+
+def test_every_path_says_when_the_recording_is_doubtful(root, ckpt, monkeypatch, capsys):
+    """A doubtful recording is said by every path: in its force file's metadata and in one line on stderr.
+    Every track kept is made too few (MIN_TRACKS_KEPT over 1), so each path's own verdict must say "tracks",
+    and the streams, which judge as they go, reach the offline verdict's figures."""
+    from vfdata import confidence
+
+    monkeypatch.setattr(confidence, "MIN_TRACKS_KEPT", 1.01)
+    outputs = {}
+    for name, extra in (("offline", []), ("stream", ["--stream"])):
+        cv2.setRNGSeed(0)
+        assert main(["predict", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--out", str(root / f"doubt_{name}"),
+                     "--no-video", "--quiet", *extra]) == 0
+        assert "doubtful: tracks:" in capsys.readouterr().err, name
+        outputs[name] = root / f"doubt_{name}" / "mini_002.force.mcap"
+    if _has_foxglove():
+        from vfmodels.commands import live
+
+        parser = argparse.ArgumentParser()
+        live.register(parser.add_subparsers())
+        cv2.setRNGSeed(0)
+        outputs["live"] = root / "doubt_live.mcap"
+        assert live.run(parser.parse_args(["live", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--port", "0",
+                                           "--speed", "0", "--depth-roi-margin", "0", "--record",
+                                           str(outputs["live"]), "--quiet"])) == 0
+        assert "warning: live: doubtful from frame stamp" in capsys.readouterr().err
+    verdicts = {}
+    for name, path in outputs.items():
+        with Recording.open(path) as rec:
+            meta = rec.metadata_records["visionforce.derived"]
+        assert meta["doubtful"] == "true", name
+        verdicts[name] = json.loads(meta["confidence"])
+        assert "tracks" in verdicts[name]["reasons"], name
+    for name, verdict in verdicts.items():
+        assert verdict["figures"]["tracks_kept"] == verdicts["offline"]["figures"]["tracks_kept"], name
+        assert verdict["figures"]["mask_area_change"] == verdicts["offline"]["figures"]["mask_area_change"], name

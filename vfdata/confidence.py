@@ -17,11 +17,13 @@ The thresholds were set on simulated recordings of seeds the yardstick does not 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+EDGE_EVERY = 15  # frames between two looks at the mask's outline (`edge_support` costs ~2 ms a look)
 EDGE_STEP_MM = 3.0  # a depth step this deep across the outline marks the tissue's edge
 EDGE_RING_PX = 4  # how far each side of the outline the step is looked for
 MIN_EDGE_SUPPORT = 0.35  # median share of the outline on depth steps, under which the mask is doubtful
@@ -56,7 +58,12 @@ class Confidence:
                          for r in self.reasons)
 
     def to_dict(self) -> dict:
-        return {"doubtful": self.doubtful, "reasons": list(self.reasons), "figures": self.figures}
+        return {"doubtful": self.doubtful, "reasons": list(self.reasons),
+                "figures": {str(k): float(v) for k, v in self.figures.items()}}
+
+    def metadata(self) -> dict[str, str]:
+        """The derived metadata's two entries (`confidence`, `doubtful`): what process, predict and live write."""
+        return {"confidence": json.dumps(self.to_dict()), "doubtful": str(self.doubtful).lower()}
 
     @classmethod
     def from_dict(cls, values: dict) -> Confidence:
@@ -110,3 +117,39 @@ def assess(frame_doubts: list[str], mask_areas: np.ndarray, edge_supports: np.nd
         if kept < MIN_TRACKS_KEPT:
             reasons.append("tracks")
     return Confidence(reasons, figures)
+
+
+class ConfidenceWatch:
+    """The verdict kept frame by frame, for a whole recording (`vfdata process`) or a stream (`vfdata live`,
+    `predict --stream`, which cannot wait for the end): `add` each frame, `verdict()` at any time. Keeps
+    what `assess` weighs in constant memory: the mask's first, largest and smallest area, its edge support
+    every EDGE_EVERY frames, and the tracks' visibility at the first and latest frame."""
+
+    def __init__(self, frame_doubts: list[str], frame_figures: dict | None = None):
+        self.frame_doubts = list(frame_doubts)
+        self.frame_figures = dict(frame_figures or {})
+        self.areas: np.ndarray | None = None  # first, largest, smallest (pixels)
+        self.supports: list[float] = []
+        self.visible_ends: list[np.ndarray] = []  # first, latest
+        self.frames = 0
+
+    def add(self, mask: np.ndarray, depth_mm: np.ndarray | None, visible: np.ndarray | None = None) -> None:
+        area = int(np.count_nonzero(mask))
+        if self.areas is None:
+            self.areas = np.array([area, area, area])
+        self.areas[1:] = max(self.areas[1], area), min(self.areas[2], area)
+        if depth_mm is not None and self.frames % EDGE_EVERY == 0:
+            self.supports.append(edge_support(mask, depth_mm))
+        if visible is not None:
+            self.visible_ends[1:] = []
+            self.visible_ends.append(np.asarray(visible, dtype=bool))
+        self.frames += 1
+
+    def set_tracks(self, visible: np.ndarray) -> None:
+        """The (F, N) visibility of tracks made after the frames (an offline tracker)."""
+        self.visible_ends = [np.asarray(visible[0], dtype=bool), np.asarray(visible[-1], dtype=bool)]
+
+    def verdict(self) -> Confidence:
+        visible = np.stack(self.visible_ends) if self.visible_ends else None
+        return assess(self.frame_doubts, self.areas if self.areas is not None else np.zeros(0),
+                      np.array(self.supports), visible, self.frame_figures)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from vfdata import __version__
 from vfdata.atomic import atomic_outputs, check_output, output_os_error
-from vfdata.confidence import Confidence, assess, edge_support
+from vfdata.confidence import Confidence, ConfidenceWatch
 from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon import Prompt
@@ -37,7 +37,6 @@ log = logging.getLogger(__name__)
 
 TRACKERS = (*TRACKER_NAMES, "none")
 RGBD_ANCHOR = 1.0  # lambda_anchor of the geometry trackers on RGB-D recordings (rgbd_options)
-EDGE_EVERY = 15  # frames between two looks at the mask's outline (vfdata.confidence.edge_support)
 ORIGIN_CUT_WARNING = "the tissue runs out of the image at its wide end: origin maybe not at the clamp"
 
 
@@ -238,7 +237,7 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
                                frames=n_frames)
     results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
     first = None
-    areas, supports, visibles = [], [], []  # what the verdict on the recording weighs (vfdata.confidence)
+    watch: ConfidenceWatch | None = None  # the verdict on the recording (vfdata.confidence)
     # One transaction: the MCAP and its picture (which replaces an older one) are written to temporaries
     # and published together at the end; neither is left without the other.
     with atomic_outputs([preview_path(out), out], overwrite=(True, overwrite), inputs=[src]) as (png_tmp, mcap_tmp), \
@@ -249,13 +248,11 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
             if result.index == 0:
                 writer.object_frame(engine.frame, result.stamp_ns)
                 first = result
+                watch = ConfidenceWatch(engine.frame.diagnostics.get("doubtful", []))
             writer.frame(result.stamp_ns, result.mask, result.depth_mm, engine.frame.to_object(result.cloud_mm))
             if result.points_mm is not None:
                 writer.tracks(result.stamp_ns, engine.frame.to_object(result.points_mm), result.visible)
-                visibles.append(result.visible)
-            areas.append(int(result.mask.sum()))
-            if result.index % EDGE_EVERY == 0:
-                supports.append(edge_support(result.mask, result.depth_mm))
+            watch.add(result.mask, result.depth_mm, result.visible)
             engine.clock.add("write", t)
             bar.update()
         bar.close()
@@ -263,9 +260,8 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
         if offline is not None:
             for i, (points, visible) in enumerate(zip(*offline, strict=True)):
                 writer.tracks(int(rec.frame_times_ns[i]), engine.frame.to_object(points), visible)
-            visibles = list(offline[1])
-        confidence = assess(engine.frame.diagnostics.get("doubtful", []), np.array(areas), np.array(supports),
-                            np.array(visibles) if visibles else None)
+            watch.set_tracks(offline[1])
+        confidence = watch.verdict()
         if confidence.doubtful:
             log.warning(f"warning: {src}: doubtful: {confidence.describe()}")
         preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm,
@@ -315,8 +311,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "object_frame_check": json.dumps(_jsonable({k: v for k, v in engine.frame.diagnostics.items()
                                                     if k in ("axis_from", "axis_doubtful", "axis_fits", "end",
                                                              "doubtful")})),
-        "confidence": json.dumps(_jsonable(confidence.to_dict())),
-        "doubtful": str(confidence.doubtful).lower(),
+        **confidence.metadata(),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
         "stage_threads": str(threads),

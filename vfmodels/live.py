@@ -28,6 +28,7 @@ import torch
 from vfdata.calibration import PinholeCamera
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import mirror_y, track_tokens
+from vfdata.confidence import Confidence, ConfidenceWatch
 from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
@@ -47,6 +48,8 @@ class ForceEstimate:
     stamp_ns: int  # the frame the force belongs to (one frame before the latest push)
     force_n: np.ndarray  # (3,) object frame
     latency_s: float  # wall time of the push that produced it (all stages + model)
+    # Why the stream is doubtful so far (keys of vfdata.confidence.REASONS; empty: not doubtful).
+    doubtful: tuple[str, ...] = ()
 
 
 def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
@@ -147,6 +150,7 @@ class StreamingForceEstimator:
         self.options, self.window, self.pipelined = options or EngineOptions(), history(self.spec, window), pipelined
         self._pool: ThreadPoolExecutor | None = None
         self._finished_clock = None
+        self._finished_confidence: Confidence | None = None
         # Called with each tracked frame's FrameResult before its force is estimated (the live view).
         self.on_frame: Callable[[FrameResult], None] | None = None
         self._reset()
@@ -154,6 +158,7 @@ class StreamingForceEstimator:
     def _reset(self) -> None:
         self.engine = FrameEngine(self.camera, self.baseline_mm, self.prompt, self.options, up=self.up)
         self.model: StreamingForceModel | None = None
+        self.watch: ConfidenceWatch | None = None
         self.frames = 0
         self._pending: tuple[ImageStages, np.ndarray, int] | None = None
 
@@ -171,6 +176,10 @@ class StreamingForceEstimator:
         if self.model is None:
             self.model = StreamingForceModel(self.regressor, self.spec, self.frame.rotation, self.frame.origin,
                                              self.window)
+            self.watch = ConfidenceWatch(self.frame.diagnostics.get("doubtful", []))
+        # The verdict as far as the stream has come: what `vfdata process` says of a whole recording, without
+        # the look ahead at its motion (a stream has no future frames), so the end may be told by fewer cues.
+        self.watch.add(result.mask, result.depth_mm, result.visible)
         t = self.engine.clock.now()
         estimate = self.model.push(stamp_ns, self.frame.to_object(result.points_mm), result.visible)
         self.engine.clock.add("force", t)
@@ -191,7 +200,18 @@ class StreamingForceEstimator:
             future = self._pool.submit(self.engine.image_stages, left, right, first, depth_mm)
             result = self._track(*self._pending) if self._pending is not None else None
             self._pending = (future.result(), left, stamp_ns)
-        return None if result is None else ForceEstimate(result[0], result[1], time.perf_counter() - t0)
+        return None if result is None else self._estimate(result, t0)
+
+    def _estimate(self, result: tuple[int, np.ndarray], t0: float) -> ForceEstimate:
+        reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
+        return ForceEstimate(result[0], result[1], time.perf_counter() - t0, reasons)
+
+    @property
+    def confidence(self) -> Confidence | None:
+        """The verdict on the current stream so far, or on the one `flush` ended (None before any frame)."""
+        if self.watch is not None:
+            return self.watch.verdict()
+        return self._finished_confidence
 
     def flush(self) -> list[ForceEstimate]:
         """The estimates still in the pipeline at the end of a stream, in frame order."""
@@ -200,12 +220,13 @@ class StreamingForceEstimator:
         if self._pending is not None:
             result = self._track(*self._pending)
             if result is not None:
-                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+                out.append(self._estimate(result, t0))
         if self.model is not None:
             result = self.model.flush()
             if result is not None:
-                out.append(ForceEstimate(result[0], result[1], time.perf_counter() - t0))
+                out.append(self._estimate(result, t0))
         self._finished_clock = self.engine.clock
+        self._finished_confidence = self.confidence
         self._reset()
         return out
 

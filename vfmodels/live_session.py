@@ -14,6 +14,7 @@ estimate's own frame: the velocity's) to the moment its force was sent; `LiveSta
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -68,6 +69,7 @@ class LiveSession:
         self.object_frame: ObjectFrame | None = None  # the stream's (the estimator forgets it at its flush)
         self._arrivals: dict[int, float] = {}  # stamp -> arrival of the next frame (the velocity's)
         self._last: LiveFrame | None = None
+        self.doubtful_since_ns: int | None = None  # the first estimate made while the stream was doubtful
         estimator.on_frame = self._on_frame
 
     def _on_frame(self, result: FrameResult) -> None:
@@ -108,6 +110,10 @@ class LiveSession:
                 self.stats.latency_ms.append(1000.0 * (sent - arrival))
             self.stats.estimates += 1
             self.stats.forces.append((int(estimate.stamp_ns), force))
+            if estimate.doubtful and self.doubtful_since_ns is None:
+                self.doubtful_since_ns = int(estimate.stamp_ns)
+                print(f"warning: live: doubtful from frame stamp {estimate.stamp_ns}: "
+                      f"{self.estimator.confidence.describe()}", file=sys.stderr, flush=True)
         while self._tracked:
             self._send_frame(self._tracked.pop(0))
 
@@ -144,4 +150,9 @@ class LiveSession:
             meta["object_frame_kind"] = frame.kind
             meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.estimator.up is not None)
         meta["camera_frame_id"] = self.source.camera_frame_id
+        confidence = self.estimator.confidence
+        if confidence is not None:
+            meta.update(confidence.metadata())
+            if self.doubtful_since_ns is not None:
+                meta["doubtful_since_ns"] = str(self.doubtful_since_ns)
         return meta

@@ -35,6 +35,7 @@ from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.decode import object_force_at
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import frame_rate, mirror_y, track_tokens
+from vfdata.confidence import Confidence
 from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, frame_image, process_recording
@@ -158,6 +159,7 @@ class PredictResult:
     up_known: bool
     x_axis: str  # what the object frame's X is (vfdata.recon.object_frame.x_axis_meaning)
     metrics: dict[str, float] | None = None  # against the recording's force sensor, as Table I (none without)
+    confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)
 
 
 def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
@@ -205,7 +207,9 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     force, side = forces_from_tracks(regressor, spec, tracks, window)
     force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
     x_axis = x_axis_meaning(tracks.metadata.object_frame_kind, tracks.metadata.up_known)
-    meta = {"stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
+    confidence = tracks.metadata.confidence
+    meta = {**(confidence.metadata() if confidence is not None else {}),
+            "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
@@ -213,13 +217,16 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     with Recording.open(src) as rec:
         measured = object_force_at(rec, tracks.times_ns) if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")
-        plot = plot_force_series(force, paths["plot"], measured_n=measured,
-                                 title=f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})")
+        title = f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})"
+        if confidence is not None and confidence.doubtful:
+            title = f"DOUBTFUL ({', '.join(confidence.reasons)}): {title}"
+        plot = plot_force_series(force, paths["plot"], measured_n=measured, title=title)
         video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress) if video else None
     known = np.zeros(0, bool) if measured is None else np.isfinite(measured).all(axis=1)
     metrics = force_metrics(force[known], measured[known]) if known.sum() > 1 else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
-                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics)
+                         tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics,
+                         confidence)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,

@@ -6,6 +6,7 @@ The heavy modules (torch, the models) are imported inside `run`, so `vfdata --he
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -87,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
                                video=not args.no_video, progress=not args.quiet, overwrite=args.overwrite,
                                device=args.device)
     print(f"{result.frames} frames; object frame X axis: {result.x_axis}")
+    if result.confidence is not None and result.confidence.doubtful:
+        print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)
     if result.metrics is not None:
         m = result.metrics
         print(f"RMSE against the recording's force sensor: {m['rmse']:.3f} N (Fx {m['rmse_fx']:.3f}, Fy "
@@ -144,10 +147,14 @@ def _stream(args: argparse.Namespace) -> int:
     finally:
         source.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
+    confidence = estimator.confidence
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
                          object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
-                                        "object_frame_kind": kind, "camera_frame_id": camera_frame},
+                                        "object_frame_kind": kind, "camera_frame_id": camera_frame,
+                                        **confidence.metadata()},
                          overwrite=args.overwrite, camera_frame_id=camera_frame)
+    if confidence.doubtful:
+        print(f"warning: {args.recording}: doubtful: {confidence.describe()}", file=sys.stderr)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
     per_stage_cpu = {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}
     delay = 2 if args.pipelined else 1
