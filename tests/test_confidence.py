@@ -31,15 +31,19 @@ def test_each_reason_is_raised_by_its_own_evidence():
     assert assess(["end"], steady, np.full(7, 0.8), None).reasons == ["end"]
     grown = steady.copy()
     grown[50:] *= MAX_AREA_CHANGE + 0.5
-    assert assess([], grown, np.full(7, 0.8), None).reasons == ["mask_area"]
+    noted = assess([], grown, np.full(7, 0.8), None)
+    assert noted.notes == ["mask_area"] and not noted.doubtful  # said, not held against the recording
     assert assess([], steady, np.full(7, 0.1), None).reasons == ["mask_edges"]
     lost = np.ones((100, 256), bool)
     lost[-1, 40:] = False
     verdict = assess([], steady, np.full(7, 0.8), lost)
-    assert verdict.reasons == ["tracks"] and "16%" in verdict.describe()
+    assert verdict.notes == ["tracks"] and not verdict.doubtful and "16%" in verdict.describe(verdict.notes)
 
 
 def test_the_verdict_survives_the_metadata_round_trip():
     verdict = assess(["axis", "end"], np.full(10, 100.0), np.full(2, 0.9), None)
     again = Confidence.from_dict(verdict.to_dict())
     assert again.reasons == ["axis", "end"] and again.figures == verdict.figures and again.doubtful
+    # a file of 2026-12-04 kept the notes among the reasons: read as notes
+    old = Confidence.from_dict({"reasons": ["tracks", "end"], "figures": {"tracks_kept": 0.1}})
+    assert old.reasons == ["end"] and old.notes == ["tracks"]

@@ -163,17 +163,18 @@ def _has_foxglove() -> bool:
 
 def test_every_path_says_when_the_recording_is_doubtful(root, ckpt, monkeypatch, capsys):
     """A doubtful recording is said by every path: in its force file's metadata and in one line on stderr.
-    Every track kept is made too few (MIN_TRACKS_KEPT over 1), so each path's own verdict must say "tracks",
-    and the streams, which judge as they go, reach the offline verdict's figures."""
+    Every mask outline is made too little on depth steps (MIN_EDGE_SUPPORT over 1), so each path's own
+    verdict must say "mask_edges", and the streams, which judge as they go, reach the offline verdict's
+    figures."""
     from vfdata import confidence
 
-    monkeypatch.setattr(confidence, "MIN_TRACKS_KEPT", 1.01)
+    monkeypatch.setattr(confidence, "MIN_EDGE_SUPPORT", 1.01)
     outputs = {}
     for name, extra in (("offline", []), ("stream", ["--stream"])):
         cv2.setRNGSeed(0)
         assert main(["predict", str(root / "mini_002.mcap"), "--ckpt", str(ckpt), "--out", str(root / f"doubt_{name}"),
                      "--no-video", "--quiet", *extra]) == 0
-        assert "doubtful: tracks:" in capsys.readouterr().err, name
+        assert "doubtful: mask: its outline" in capsys.readouterr().err, name
         outputs[name] = root / f"doubt_{name}" / "mini_002.force.mcap"
     if _has_foxglove():
         from vfmodels.commands import live
@@ -192,7 +193,8 @@ def test_every_path_says_when_the_recording_is_doubtful(root, ckpt, monkeypatch,
             meta = rec.metadata_records["visionforce.derived"]
         assert meta["doubtful"] == "true", name
         verdicts[name] = json.loads(meta["confidence"])
-        assert "tracks" in verdicts[name]["reasons"], name
+        assert "mask_edges" in verdicts[name]["reasons"], name
     for name, verdict in verdicts.items():
         assert verdict["figures"]["tracks_kept"] == verdicts["offline"]["figures"]["tracks_kept"], name
         assert verdict["figures"]["mask_area_change"] == verdicts["offline"]["figures"]["mask_area_change"], name
+        assert verdict["figures"]["mask_edge_support"] == verdicts["offline"]["figures"]["mask_edge_support"], name

@@ -264,6 +264,8 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
         confidence = watch.verdict()
         if confidence.doubtful:
             log.warning(f"warning: {src}: doubtful: {confidence.describe()}")
+        if confidence.notes:
+            log.warning(f"note: {src}: {confidence.describe(confidence.notes)}")
         preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm,
                                       engine.prompt.box, warning=("doubtful: " + ", ".join(confidence.reasons))
                                       if confidence.doubtful else ORIGIN_CUT_WARNING if engine.origin_cut else None)

@@ -96,13 +96,14 @@ def info_text(path: str | Path) -> str:
 
 
 def derived_verdict(rec: Recording) -> str | None:
-    """A derived file's verdict on its recording (`vfdata.confidence`) in words: 'ok' or 'doubtful: ...';
+    """A derived file's verdict on its recording (`vfdata.confidence`) in words: 'ok' or 'doubtful: ...', and its notes;
     None when the file holds none (a recording, or a derived file from before it was judged)."""
     meta = rec.metadata_records.get(layout.DERIVED_METADATA)
     if not meta or "confidence" not in meta:
         return None
     confidence = DerivedMeta.from_record(rec.path, meta).confidence
-    return "ok" if not confidence.doubtful else f"doubtful: {confidence.describe()}"
+    verdict = "ok" if not confidence.doubtful else f"doubtful: {confidence.describe()}"
+    return verdict + (f" (notes: {confidence.describe(confidence.notes)})" if confidence.notes else "")
 
 
 def file_verdict(path: str | Path) -> str | None:
