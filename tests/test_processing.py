@@ -246,3 +246,18 @@ def test_timing_says_how_the_rates_were_measured(recording, processed):
     line = rate_conditions([entry], "geometry")
     meta = Recording.open(processed).metadata_records[layout.DERIVED_METADATA]
     assert f"{meta['stage_threads']} torch thread" in line and f"{meta['stage_cores']} core" in line
+
+
+def test_the_papers_frame_on_request_is_the_papers_search_on_the_first_cloud(recording, processed, tmp_path):
+    """`--object-frame paper` reproduces the paper: `estimate_object_frame` on the first frame's cloud,
+    which the default (`tissue`) only takes as one of its fits."""
+    from vfdata.recon.object_frame import estimate_object_frame
+
+    out = tmp_path / "paper.processed.mcap"
+    assert main(["process", str(recording), str(out), "--object-frame", "paper", "--tracker", "none", "--quiet"]) == 0
+    derived = DerivedRecording.open(out)
+    cloud = derived.frame(0).cloud_mm  # object frame, float32 as written
+    expected = estimate_object_frame(derived.object_frame.to_camera(cloud), derived.object_frame.rotation[:, 0])
+    np.testing.assert_allclose(derived.object_frame.z_axis, expected.z_axis, atol=1e-3)
+    assert "axis_fits" not in derived.meta.json("object_frame_check", {})  # none of the product's checks ran
+    assert "axis_fits" in DerivedRecording.open(processed).meta.json("object_frame_check", {})

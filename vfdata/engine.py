@@ -26,8 +26,9 @@ import numpy as np
 
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError
+from vfdata.object_frames import OBJECT_FRAMES, TUBE_FRAMES
 from vfdata.recon import Prompt, make_depth_estimator, make_segmenter, tissue_cloud
-from vfdata.recon.object_frame import ObjectFrame, origin_cut_by_view
+from vfdata.recon.object_frame import ObjectFrame, estimate_object_frame, origin_cut_by_view
 from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
 from vfdata.recon.tissue_frame import tissue_frame
 from vfdata.tracking.motion_scan import scan_motion
@@ -55,9 +56,7 @@ class EngineOptions:
     # disparity range unless depth_options give one. Without a floor, dark textureless background
     # matches at near-zero disparity (depth near infinity) and leaks into the tissue's edges.
     working_range_mm: tuple[float, float] = (40.0, 300.0)
-    # The frame tracks and clouds are written in: "tissue" (the tube's object frame, the paper's),
-    # "board" (a flat organ on a board: normal = up, docs/reconstruction.md) or "camera".
-    # "auto": tissue for stereo recordings, board for RGB-D ones (vfdata.processing).
+    # The frame tracks and clouds are written in: a key of vfdata.object_frames.OBJECT_FRAMES.
     object_frame: str = "auto"
     # Depth only where the tissue can be: the box of the previous frame's mask grown by this many
     # pixels each way (0: the whole image, always for the first frame). Depth elsewhere is NaN. A
@@ -65,7 +64,6 @@ class EngineOptions:
     depth_roi_margin_px: int = 0
 
 
-OBJECT_FRAMES = ("auto", "tissue", "board", "camera")
 SENSOR_DEPTH = "sensor"  # the depth an RGB-D camera recorded: no depth backend runs
 
 
@@ -277,13 +275,15 @@ class FrameEngine:
             self.frame = board_frame(plane, self.camera, first.cloud_mm)
         elif self.options.object_frame == "camera":
             self.frame = camera_frame()
+        elif self.options.object_frame == "paper":
+            self.frame = estimate_object_frame(first.cloud_mm, self.up)
         else:
             # A look ahead at the recording, when the caller can give one: the motion of each end (clamped_end).
             motion = None if self.look_ahead is None else scan_motion(self.look_ahead(), first.mask,
                                                                       first.depth_mm, self.camera)
             self.frame = tissue_frame(first.image_bgr, first.mask, first.depth_mm, first.cloud_mm, self.camera,
                                       self.up, motion)
-        self.origin_cut = self.options.object_frame in ("auto", "tissue") and bool(
+        self.origin_cut = self.options.object_frame in ("auto", *TUBE_FRAMES) and bool(
             origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
         if self.origin_cut:
             log.warning("warning: the tissue runs out of the image at its wide end: the object frame's origin "

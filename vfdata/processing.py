@@ -23,6 +23,7 @@ from vfdata.atomic import atomic_outputs, check_output, output_os_error
 from vfdata.confidence import Confidence, ConfidenceWatch
 from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
 from vfdata.errors import InputError, VisionForceError
+from vfdata.object_frames import TUBE_FRAMES
 from vfdata.recon import Prompt
 from vfdata.recon.object_frame import up_in_camera
 from vfdata.recon.preview import first_frame_preview
@@ -146,7 +147,7 @@ def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
     if options.depth not in ("sgbm", SENSOR_DEPTH):
         raise InputError(src, f"an RGB-D recording brings its depth: depth '{options.depth}' does not apply "
                               f"(leave --depth out, or --depth {SENSOR_DEPTH})")
-    if options.object_frame == "tissue":
+    if options.object_frame in TUBE_FRAMES:
         raise InputError(src, "the tube's object frame does not apply to an RGB-D recording of a flat organ: "
                               "--object-frame board (default) or camera")
     if options.tracker in IMAGE_TRACKERS:

@@ -9,6 +9,7 @@ from pathlib import Path
 from vfdata.commands.outputs import skip_existing
 from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
 from vfdata.errors import VisionForceError
+from vfdata.object_frames import OBJECT_FRAME_HELP, OBJECT_FRAMES
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
 
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
@@ -58,9 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segment", default="colortrack",
                    help="mask backend: colortrack (default for stereo), sam2, plane (default for RGB-D: what stands "
                         "above a flat board)")
-    p.add_argument("--object-frame", default="auto", choices=["auto", "tissue", "board", "camera"],
-                   help="frame of clouds and tracks: tissue (the tube's object frame; auto for stereo), board "
-                        "(a flat organ's board, normal = up; auto for RGB-D) or camera")
+    p.add_argument("--object-frame", default="auto", choices=list(OBJECT_FRAMES), help=OBJECT_FRAME_HELP)
     p.add_argument("--segment-options", help="backend options, key=value,... (e.g. config=...,checkpoint=...)")
     p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
                                     "(default: prompt_box in the recording's metadata)")
