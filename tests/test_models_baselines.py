@@ -135,7 +135,7 @@ def test_rgb_backbone_sees_normalised_input_through_the_regressor():
 
 def test_rgb_eval_mode_stays_sane_after_a_few_steps():
     """Before and after a few optimiser steps the evaluation-mode loss is of order 1 and the forces of
-    the order of the targets (with 0-255 inputs and torchvision's BatchNorm they were thousands of N)."""
+    the order of the targets (with 0-255 inputs and plain BatchNorm they were thousands of N)."""
     torch.manual_seed(0)
     batch = make_image_clips(clips=2, size=16)
     regressor = regressor_for(RGBResNet3D(), batch)
