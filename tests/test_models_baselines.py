@@ -1,7 +1,11 @@
 """The image baselines: output shapes, pretrained weights from a local file (or a clear error), the
 input scale the backbone sees through ForceRegressor, and a tiny overfit judged in evaluation mode
 (the two checks that would have caught the 14,786 N RGB baseline: 0-255 inputs normalised as if 0-1,
-and BatchNorm running averages far from the batch statistics after a few optimiser steps)."""
+and BatchNorm running averages far from the batch statistics after a few optimiser steps).
+
+The backbones (vfmodels.backbones) against torchvision's r3d_18 and timm's vit_small_patch16_224:
+same parameter names and shapes, same outputs with the same weights; those tests run only where
+the two packages are installed (not in the CPU-only set-up), the rest needs neither."""
 
 import numpy as np
 import pytest
@@ -9,10 +13,10 @@ import torch
 import torch.nn.functional as F
 from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 from torch import nn
-from torchvision.models.video import r3d_18
 
 from vfdata.errors import BackendError
 from vfmodels import DepthViTLSTM, ForceRegressor, RGBResNet3D
+from vfmodels.backbones import R3D18, ViTSmall16, adapt_vit_state
 
 
 def make_image_clips(clips: int = 4, frames: int = 8, size: int = 32, seed: int = 0,
@@ -131,7 +135,7 @@ def test_rgb_backbone_sees_normalised_input_through_the_regressor():
 
 def test_rgb_eval_mode_stays_sane_after_a_few_steps():
     """Before and after a few optimiser steps the evaluation-mode loss is of order 1 and the forces of
-    the order of the targets (with 0-255 inputs and torchvision's BatchNorm they were thousands of N)."""
+    the order of the targets (with 0-255 inputs and plain BatchNorm they were thousands of N)."""
     torch.manual_seed(0)
     batch = make_image_clips(clips=2, size=16)
     regressor = regressor_for(RGBResNet3D(), batch)
@@ -178,9 +182,21 @@ def test_rgb_frozen_norm_keeps_statistics_and_matches_eval():
     torch.testing.assert_close(train_out, regressor.eval()(batch))
 
 
+def with_random_norm_statistics(model: nn.Module) -> nn.Module:
+    """`model` with random BatchNorm statistics, scales and shifts (as trained weights have), so that
+    a test sees whether they load and are used (fresh ones are 0 and 1 everywhere)."""
+    for module in model.modules():
+        if isinstance(module, nn.BatchNorm3d):
+            module.running_mean.uniform_(-0.5, 0.5)
+            module.running_var.uniform_(0.5, 2.0)
+            nn.init.uniform_(module.weight, 0.5, 1.5)
+            nn.init.uniform_(module.bias, -0.2, 0.2)
+    return model
+
+
 def test_rgb_r3d_loads_local_weights(tmp_path):
     torch.manual_seed(1)
-    source = r3d_18()
+    source = with_random_norm_statistics(R3D18())
     torch.save({"state_dict": source.state_dict()}, tmp_path / "r3d.pth")
     model = RGBResNet3D(weights_path=str(tmp_path / "r3d.pth"))
     assert model.initialisation.startswith("pretrained:")
@@ -194,24 +210,46 @@ def test_rgb_r3d_loads_local_weights(tmp_path):
     torch.save({"conv.weight": torch.zeros(3)}, tmp_path / "other.pth")
     with pytest.raises(BackendError, match="not r3d_18 weights"):
         RGBResNet3D(weights_path=str(tmp_path / "other.pth"))
+    # the right names with other shapes (a wider stem): the same one-line error, not torch's RuntimeError
+    state = source.state_dict()
+    state["stem.0.weight"] = torch.zeros(32, 3, 3, 7, 7)
+    torch.save(state, tmp_path / "narrow.pth")
+    with pytest.raises(BackendError, match="narrow.pth: not r3d_18 weights .shapes differ: .'stem.0.weight"):
+        RGBResNet3D(weights_path=str(tmp_path / "narrow.pth"))
+
+
+def test_rgb_frozen_pretrained_uses_the_loaded_statistics(tmp_path):
+    """With weights and the default frozen norm the baseline's features are exactly the pretrained
+    R3D-18's (Kinetics-normalised input, the loaded BatchNorm statistics), in training mode too."""
+    torch.manual_seed(2)
+    source = with_random_norm_statistics(R3D18()).eval()
+    torch.save(source.state_dict(), tmp_path / "r3d.pth")
+    model = RGBResNet3D(weights_path=str(tmp_path / "r3d.pth")).train()
+    images = torch.randint(0, 256, (1, 8, 3, 16, 16), dtype=torch.uint8)
+    x = (images.float().transpose(1, 2) - model.mean) / model.std
+    with torch.no_grad():
+        torch.testing.assert_close(model.features(x), source.forward_features(x))
 
 
 @pytest.mark.slow  # two ViT-Small models (22 M parameters each) built and saved
 def test_depth_vit_shapes_and_local_rgb_weights(tmp_path):
-    import timm
-
     torch.manual_seed(0)
     model = DepthViTLSTM(img_size=32).eval()
     assert model.initialisation == "random"
     with torch.no_grad():
         assert model(torch.randn(2, 3, 1, 32, 32)).shape == (2, 3, 3)
-    # RGB ImageNet-style ViT-S/16 weights at 224 px adapt to one channel and 32 px
-    source = timm.create_model("vit_small_patch16_224", num_classes=1000)
+    with pytest.raises(ValueError, match="32 x 32 px"):
+        model(torch.randn(1, 1, 1, 48, 48))
+    # RGB ImageNet-style ViT-S/16 weights at 224 px (with their classifier) adapt to one channel and 32 px
+    source = ViTSmall16(num_classes=1000)
     torch.save(source.state_dict(), tmp_path / "vit.pth")
     loaded = DepthViTLSTM(weights_path=str(tmp_path / "vit.pth"), img_size=32)
     assert loaded.vit.patch_embed.proj.weight.shape[1] == 1
+    torch.testing.assert_close(loaded.vit.patch_embed.proj.weight, source.patch_embed.proj.weight.sum(1, keepdim=True))
+    torch.testing.assert_close(loaded.vit.pos_embed[:, 0], source.pos_embed[:, 0])  # the class token's
+    assert loaded.vit.pos_embed.shape == (1, 1 + 2 * 2, 384)
     torch.testing.assert_close(loaded.vit.blocks[0].attn.qkv.weight, source.blocks[0].attn.qkv.weight)
-    torch.save(r3d_18().state_dict(), tmp_path / "wrong.pth")
+    torch.save(R3D18().state_dict(), tmp_path / "wrong.pth")
     with pytest.raises(BackendError, match="not ViT-Small"):
         DepthViTLSTM(weights_path=str(tmp_path / "wrong.pth"), img_size=32)
     with pytest.raises(BackendError, match="missing.pth: vit_small_patch16_224 weights file not found"):
@@ -243,3 +281,78 @@ def test_depth_vit_tiny_overfit():
     assert torch.isfinite(pred_n).all()
     assert pred_n.abs().max() < 3 * batch["force"].abs().max()
     assert after < 0.6 * before, (before, after)
+
+
+# ------------------------------------------------- the backbones against torchvision's and timm's
+
+
+def same_names_and_shapes(ours: nn.Module, theirs: nn.Module) -> None:
+    a = {k: tuple(v.shape) for k, v in ours.state_dict().items()}
+    b = {k: tuple(v.shape) for k, v in theirs.state_dict().items()}
+    assert sorted(a) == sorted(b), (sorted(set(a) ^ set(b)))[:5]
+    assert a == b, [k for k in a if a[k] != b[k]][:5]
+
+
+def test_r3d18_is_torchvisions_r3d_18():
+    """Same parameter names and shapes; torchvision's weights load strictly and give the same class
+    scores and the same intermediate features (stem to stage 4), in evaluation mode with non-trivial
+    BatchNorm statistics, and in training mode (batch statistics)."""
+    video = pytest.importorskip("torchvision.models.video")
+    torch.manual_seed(0)
+    theirs = with_random_norm_statistics(video.r3d_18()).eval()
+    ours = R3D18().eval()
+    same_names_and_shapes(ours, theirs)
+    ours.load_state_dict(theirs.state_dict(), strict=True)
+    x = torch.randn(2, 3, 8, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(ours(x), theirs(x), atol=1e-5, rtol=1e-4)
+        ref = theirs.layer4(theirs.layer3(theirs.layer2(theirs.layer1(theirs.stem(x)))))
+        assert ref.shape == (2, 512, 1, 2, 2)
+        torch.testing.assert_close(ours.forward_features(x), ref, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(ours.train()(x), theirs.train()(x), atol=1e-5, rtol=1e-4)
+
+
+def test_vit_small16_is_timms_vit_small_patch16_224():
+    """Same parameter names and shapes (with the 1000-class head, as timm builds it); timm's weights
+    load strictly and give the same class scores, and without a head the same class-token features."""
+    timm = pytest.importorskip("timm")
+    torch.manual_seed(0)
+    theirs = timm.create_model("vit_small_patch16_224", pretrained=False).eval()
+    ours = ViTSmall16(num_classes=1000).eval()
+    same_names_and_shapes(ours, theirs)
+    ours.load_state_dict(theirs.state_dict(), strict=True)
+    x = torch.randn(2, 3, 224, 224)
+    with torch.no_grad():
+        torch.testing.assert_close(ours(x), theirs(x), atol=1e-5, rtol=1e-4)
+        headless = timm.create_model("vit_small_patch16_224", pretrained=False, num_classes=0).eval()
+        mine = ViTSmall16().eval()
+        same_names_and_shapes(mine, headless)
+        mine.load_state_dict(headless.state_dict(), strict=True)
+        torch.testing.assert_close(mine(x), headless(x), atol=1e-5, rtol=1e-4)
+
+
+def test_depth_vit_adapts_rgb_weights_as_timm_does():
+    """RGB 224 px ViT-S/16 weights fitted to one channel and a 2 x 2 patch grid (channel sum, bicubic
+    antialiased position embedding) load into the depth baseline's ViT as timm's adapt_input_conv and
+    checkpoint_filter_fn fit them into timm's one-channel 32 px model: the same tensors, the same output."""
+    timm = pytest.importorskip("timm")
+    from timm.models import adapt_input_conv
+    from timm.models.vision_transformer import checkpoint_filter_fn
+
+    torch.manual_seed(0)
+    state = ViTSmall16(num_classes=1000).state_dict()
+    theirs = timm.create_model("vit_small_patch16_224", pretrained=False, in_chans=1, num_classes=0,
+                               img_size=32).eval()
+    timm_state = {k: v for k, v in state.items() if not k.startswith("head.")}
+    timm_state["patch_embed.proj.weight"] = adapt_input_conv(1, timm_state["patch_embed.proj.weight"])
+    timm_state = checkpoint_filter_fn(timm_state, theirs)
+    theirs.load_state_dict(timm_state, strict=True)
+    ours = ViTSmall16(img_size=32, in_chans=1).eval()
+    our_state = adapt_vit_state(state, ours)
+    assert sorted(our_state) == sorted(timm_state)
+    for k in our_state:
+        torch.testing.assert_close(our_state[k], timm_state[k], atol=1e-6, rtol=1e-5, msg=k)
+    ours.load_state_dict(our_state, strict=True)
+    x = torch.randn(3, 1, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(ours(x), theirs(x), atol=1e-5, rtol=1e-4)

@@ -3,6 +3,8 @@ model adapters' errors."""
 
 from __future__ import annotations
 
+import sys
+
 import cv2
 import numpy as np
 import pytest
@@ -153,9 +155,23 @@ def test_sam2_and_detector_fail_clearly_without_weights(tmp_path):
         DetectorPrompt(weights=tmp_path / "none.pth")
 
 
+def test_detector_without_torchvision_names_the_extra(tmp_path, monkeypatch):
+    """torchvision is the optional extra `detector` (a CPU-only torch cannot have PyPI's torchvision):
+    without it a detector with weights fails in one line that says what to install. A None in
+    sys.modules makes the import fail as it does where the package is absent."""
+    torch = pytest.importorskip("torch")
+    torch.save({"x": torch.zeros(1)}, tmp_path / "det.pth")
+    monkeypatch.setitem(sys.modules, "torchvision", None)
+    monkeypatch.setitem(sys.modules, "torchvision.models.detection", None)
+    with pytest.raises(BackendError, match=r"needs torchvision \(pip install 'visionforce\[detector\]'") as info:
+        DetectorPrompt(weights=tmp_path / "det.pth")
+    assert "\n" not in str(info.value)
+
+
 @pytest.mark.slow
 def test_detector_loads_a_state_dict_and_returns_a_box(tmp_path):
     torch = pytest.importorskip("torch")
+    pytest.importorskip("torchvision")  # the optional extra `detector`
     from torchvision.models.detection import fasterrcnn_resnet50_fpn
 
     # An untrained detector saved as the user would save a fine-tuned one: loading must work,

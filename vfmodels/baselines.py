@@ -1,13 +1,14 @@
 """The paper's two image baselines, with the same output as the proposed model: forces (B, T, 3) per
 frame in normalised units.
 
-- `RGBResNet3D`: torchvision's 3D ResNet-18 (`r3d_18`) on monocular (left) RGB clips.
-- `DepthViTLSTM`: a ViT-Small (timm `vit_small_patch16_224`, one input channel) per frame on the
+- `RGBResNet3D`: a 3D ResNet-18 (R3D-18, `vfmodels.backbones.R3D18`) on monocular (left) RGB clips.
+- `DepthViTLSTM`: a ViT-Small/16 (`vfmodels.backbones.ViTSmall16`, one input channel) per frame on the
   tissue-masked depth image, then the same causal LSTM and heads as the proposed model.
 
 The paper starts both from pretrained weights. Those cannot be downloaded here, so each model takes
-`weights_path` (a local file) and otherwise starts from random initialisation; `initialisation` records
-which, and training logs it.
+`weights_path` (a local file in torchvision's `r3d_18` or timm's `vit_small_patch16_224` format; neither
+package is needed to load it) and otherwise starts from random initialisation; `initialisation`
+records which, and training logs it.
 """
 
 from __future__ import annotations
@@ -20,9 +21,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from vfdata.errors import BackendError
+from vfmodels.backbones import R3D18, ViTSmall16, adapt_vit_state
 from vfmodels.decoder import CausalForceDecoder, ForceHeads
 
-# Kinetics-400 statistics that torchvision's pretrained video models expect (RGB, in [0, 1]).
+# Kinetics-400 statistics that torchvision's pretrained r3d_18 weights expect (RGB, in [0, 1]).
 KINETICS_MEAN = (0.43216, 0.394666, 0.37645)
 KINETICS_STD = (0.22803, 0.22145, 0.216989)
 
@@ -44,6 +46,21 @@ def _load_state_dict(path: str | Path, what: str) -> dict[str, torch.Tensor]:
     return state
 
 
+def _load_checked(module: nn.Module, state: dict[str, torch.Tensor], path: str | Path, what: str,
+                  ignore: tuple[str, ...] = ()) -> None:
+    """Load `state` into `module`, or a BackendError naming the file when names or shapes differ
+    (keys starting with `ignore` may be absent)."""
+    own = module.state_dict()
+    wrong = [f"{k} {tuple(v.shape)} vs {tuple(own[k].shape)}" for k, v in state.items()
+             if k in own and hasattr(v, "shape") and v.shape != own[k].shape]
+    if wrong:
+        raise BackendError(f"{path}: not {what} weights (shapes differ: {wrong[:3]})")
+    missing, unexpected = module.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith(ignore)]
+    if missing or unexpected:
+        raise BackendError(f"{path}: not {what} weights (missing {missing[:3]}, unexpected {unexpected[:3]})")
+
+
 NORMS = ("group", "frozen", "batch")
 
 
@@ -51,21 +68,22 @@ class RGBResNet3D(nn.Module):
     """RGB clips (B, T, 3, H, W), values 0-255 (uint8, or float as `ForceRegressor` passes them on)
     -> forces (B, T, 3).
 
-    r3d_18's stem and four stages give features at T/8 time steps; they are averaged over space,
+    R3D-18's stem and four stages give features at T/8 time steps; they are averaged over space,
     interpolated back to the T frames and passed to one head per force component. 3D convolutions
     see both neighbours in time, so unlike the proposed model this baseline is not causal.
 
-    `norm` sets what r3d_18's BatchNorm layers become (docs/models.md, "Baselines"):
+    `norm` sets what R3D-18's BatchNorm layers become (docs/models.md, "Baselines"):
     - "group": GroupNorm (32 groups), the same computation in training and evaluation, residual
       branches starting at zero; the default without pretrained weights.
     - "frozen": BatchNorm that always uses its stored statistics (the pretrained weights'; their
       scale and shift still train); the default with `weights_path`.
-    - "batch": torchvision's BatchNorm, batch statistics in training and running averages in
+    - "batch": plain BatchNorm, batch statistics in training and running averages in
       evaluation. Those averages trail the weights by ~10 optimiser steps (momentum 0.1), so an
       evaluation after a few hundred steps can be off by orders of magnitude.
 
     Args:
-        weights_path: a local r3d_18 checkpoint (Kinetics-400); None: random initialisation.
+        weights_path: a local checkpoint in torchvision's r3d_18 format (Kinetics-400); None: random
+            initialisation.
         head_hidden: hidden units of each force head.
         norm: group, frozen or batch (see above); None: frozen with weights, else group.
     """
@@ -76,24 +94,17 @@ class RGBResNet3D(nn.Module):
     def __init__(self, weights_path: str | None = None, head_hidden: int = 64,
                  norm: Literal["group", "frozen", "batch"] | None = None):
         super().__init__()
-        # here, not at the top: torchvision loads only with the RGB baseline, not with the point models
-        from torchvision.models.video import r3d_18
-
         norm = norm or ("frozen" if weights_path else "group")
         if norm not in NORMS:
             raise ValueError(f"norm '{norm}' is not one of {', '.join(NORMS)}")
         # the resolved norm is stored, so that a checkpoint rebuilds the same layers without the weights file
         self.config = dict(weights_path=weights_path, head_hidden=head_hidden, norm=norm)
         self.norm = norm
-        backbone = r3d_18(weights=None)
+        backbone = R3D18()
         if weights_path:
+            # the Kinetics classifier is not used (the force heads replace it): neither loaded nor required
             state = {k: v for k, v in _load_state_dict(weights_path, "r3d_18").items() if not k.startswith("fc.")}
-            missing, unexpected = backbone.load_state_dict(state, strict=False)
-            missing = [k for k in missing if not k.startswith("fc.")]
-            if missing or unexpected:
-                raise BackendError(
-                    f"{weights_path}: not r3d_18 weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
-                )
+            _load_checked(backbone, state, weights_path, "r3d_18", ignore=("fc.",))
         if norm == "group":
             _batch_to_group_norm(backbone)
             # Each residual branch starts at zero (its last norm's scale = 0, Goyal et al. 2017), so the
@@ -149,7 +160,8 @@ class DepthViTLSTM(nn.Module):
     the patch-embedding filters over RGB, and the position embedding is resampled to `img_size`.
 
     Args:
-        weights_path: a local ViT-Small checkpoint; None: random initialisation.
+        weights_path: a local ViT-Small/16 checkpoint in timm's vit_small_patch16_224 format (RGB or one
+            channel, any square patch grid); None: random initialisation.
         img_size: side of the square depth images (ClipSpec.image_size), pixels.
         lstm_hidden: hidden size of the causal LSTM over the clip.
     """
@@ -159,27 +171,11 @@ class DepthViTLSTM(nn.Module):
 
     def __init__(self, weights_path: str | None = None, img_size: int = 224, lstm_hidden: int = 192):
         super().__init__()
-        # here, not at the top: timm loads only with the depth baseline, not with the point models
-        import timm
-        from timm.models import adapt_input_conv
-        from timm.models.vision_transformer import checkpoint_filter_fn
-
         self.config = dict(weights_path=weights_path, img_size=img_size, lstm_hidden=lstm_hidden)
-        self.vit = timm.create_model(
-            "vit_small_patch16_224", pretrained=False, in_chans=1, num_classes=0, img_size=img_size
-        )
+        self.vit = ViTSmall16(img_size=img_size, in_chans=1)
         if weights_path:
-            state = _load_state_dict(weights_path, "vit_small_patch16_224")
-            state = {k: v for k, v in state.items() if not k.startswith("head.")}
-            weight = state.get("patch_embed.proj.weight")
-            if weight is not None and weight.shape[1] != 1:
-                state["patch_embed.proj.weight"] = adapt_input_conv(1, weight)
-            state = checkpoint_filter_fn(state, self.vit)
-            missing, unexpected = self.vit.load_state_dict(state, strict=False)
-            if missing or unexpected:
-                raise BackendError(
-                    f"{weights_path}: not ViT-Small/16 weights (missing {missing[:3]}, unexpected {unexpected[:3]})"
-                )
+            state = adapt_vit_state(_load_state_dict(weights_path, "vit_small_patch16_224"), self.vit)
+            _load_checked(self.vit, state, weights_path, "ViT-Small/16")
         self.initialisation = f"pretrained:{weights_path}" if weights_path else "random"
         self.decoder = CausalForceDecoder(self.vit.num_features, lstm_hidden)
 

@@ -41,8 +41,15 @@ class DetectorPrompt:
             raise BackendError(f"detector: weights {path} not found")
         # Read before torchvision builds anything: tensors only, nothing in the file runs.
         state = load_state_dict(path, "detector weights file")
-        # torchvision (and torch) load here, not at the top: `vfdata` starts without them.
-        from torchvision.models.detection import fasterrcnn_resnet50_fpn
+        # torchvision (and torch) load here, not at the top: `vfdata` starts without them, and torchvision
+        # is an optional extra (its PyPI wheels need the CUDA torch; with a CPU torch its import fails).
+        try:
+            from torchvision.models.detection import fasterrcnn_resnet50_fpn
+        except (ImportError, RuntimeError) as exc:
+            raise BackendError(
+                f"detector: needs torchvision (pip install 'visionforce[detector]', matching your torch): "
+                f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+            ) from None
 
         model = fasterrcnn_resnet50_fpn(
             weights=None, weights_backbone=None, num_classes=self.num_classes, min_size=self.min_size
