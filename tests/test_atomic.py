@@ -151,7 +151,9 @@ def test_stale_temporaries_of_gone_processes_are_removed(raw, tmp_path):
 
 
 def test_sigterm_cleans_up_like_ctrl_c(tmp_path):
-    src = make_raw(tmp_path / "rec", n=150, width=320, height=256)
+    # Long enough that the signal, sent once the temporary appears, lands while frames are still being
+    # written on a loaded machine (150 frames finished first once, under a parallel benchmark).
+    src = make_raw(tmp_path / "rec", n=600, width=320, height=256)
     out = tmp_path / "out" / "rec.mcap"
     out.parent.mkdir()
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
