@@ -43,6 +43,27 @@ def test_process_help_names_every_registered_tracker():
     assert all(name in TRACKER_HELP for name in TRACKERS)
 
 
+def test_a_trackers_facts_come_from_its_kind():
+    """What the device policy, RGB-D processing and the reports say of a tracker is its entry in
+    vfdata.tracker_kinds, and every entry can be made."""
+    from vfdata.device import shared_device_options, tracker_device_options
+    from vfdata.engine import EngineOptions
+    from vfdata.errors import VisionForceError
+    from vfdata.processing import rgbd_options
+    from vfdata.tracker_kinds import TRACKER_KINDS, tracker_label
+    from vfdata.tracking.registry import TRACKERS
+
+    assert set(TRACKERS) == set(TRACKER_KINDS)
+    for name, kind in TRACKER_KINDS.items():
+        assert tracker_label(name) == kind.label
+        assert (shared_device_options(name, "cuda") == {"device": "cuda"}) == kind.gpu
+        if not kind.gpu:
+            with pytest.raises(VisionForceError, match="CPU only"):
+                tracker_device_options(name, "cuda")
+        options = rgbd_options(EngineOptions(tracker=name), Path("rec.mcap")).tracker_options
+        assert all(options[key] == value for key, value in kind.rgbd_options.items())
+
+
 def _vfdata(*args: str) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "vfdata", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,

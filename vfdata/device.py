@@ -10,6 +10,7 @@ never slower than `cpu` there, by construction."""
 from __future__ import annotations
 
 from vfdata.errors import VisionForceError
+from vfdata.tracker_kinds import GPU_TRACKERS
 
 DEVICES = ("cpu", "cuda", "auto")
 DEVICE_HELP = ("where the tracker's SIREN fit and nearest neighbours and the force model run: cpu (default), "
@@ -63,8 +64,6 @@ def lightning_accelerator(device: str) -> str:
     """The Lightning `trainer.accelerator` of a resolved device."""
     return "cpu" if device == "cpu" else "gpu"
 
-
-GPU_TRACKERS = ("geometry", "geometry+")
 
 
 def tracker_device_options(tracker: str, device: str) -> dict:

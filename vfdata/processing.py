@@ -30,14 +30,13 @@ from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedWriter
 from vfdata.threads import DEFAULT_THREADS, thread_limit
+from vfdata.tracker_kinds import IMAGE_TRACKERS, TRACKER_KINDS
 from vfdata.tracking.motion_scan import scan_stride
-from vfdata.tracking.registry import IMAGE_TRACKERS
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
 log = logging.getLogger(__name__)
 
 TRACKERS = (*TRACKER_NAMES, "none")
-RGBD_ANCHOR = 1.0  # lambda_anchor of the geometry trackers on RGB-D recordings (rgbd_options)
 ORIGIN_CUT_WARNING = "the tissue runs out of the image at its wide end: origin maybe not at the clamp"
 
 
@@ -155,8 +154,9 @@ def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
                     "here is its depth drawn as grey, whose brightness a press changes: --tracker geometry "
                     "needs only the depth (docs/tracking.md)")
     tracker_options = dict(options.tracker_options)
-    if options.tracker in ("geometry", "geometry+"):
-        tracker_options.setdefault("lambda_anchor", RGBD_ANCHOR)
+    kind = TRACKER_KINDS.get(options.tracker)
+    for key, value in (kind.rgbd_options if kind is not None else {}).items():
+        tracker_options.setdefault(key, value)
     return replace(options, depth=SENSOR_DEPTH, segment="plane" if options.segment == "colortrack" else options.segment,
                    object_frame="board" if options.object_frame == "auto" else options.object_frame,
                    tracker_options=tracker_options)

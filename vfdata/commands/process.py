@@ -11,11 +11,10 @@ from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
 from vfdata.errors import VisionForceError
 from vfdata.object_frames import OBJECT_FRAME_HELP, OBJECT_FRAMES
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
+from vfdata.tracker_kinds import TRACKER_HELP
 
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
 # `vfdata --help` starts fast; the registry checks the tracker's name.
-TRACKER_HELP = ("point tracker: geometry (default), geometry+ (also follows the image texture), klt, cotracker "
-                "(needs its weights), groundtruth (the simulator's true points), static, or none (no tracks)")
 
 
 def _options(text: str | None) -> dict:

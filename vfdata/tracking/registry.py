@@ -28,6 +28,7 @@ import numpy as np
 
 from vfdata.calibration import PinholeCamera
 from vfdata.errors import BackendError, InputError
+from vfdata.tracker_kinds import TRACKER_KINDS
 from vfdata.tracking.cotracker import CoTrackerTracker
 from vfdata.tracking.geometry import GeometryTracker
 from vfdata.tracking.groundtruth import GroundTruthTracker
@@ -284,8 +285,8 @@ _MAKERS: dict[str, Callable[..., _Adapter]] = {
     "groundtruth": _GroundTruth,
     "static": _Static,
 }
-TRACKERS: tuple[str, ...] = tuple(_MAKERS)
-IMAGE_TRACKERS: tuple[str, ...] = ("geometry+", "klt", "cotracker")  # they read the images, not only the depth
+TRACKERS: tuple[str, ...] = tuple(TRACKER_KINDS)
+assert set(_MAKERS) == set(TRACKER_KINDS), "every tracker kind (vfdata.tracker_kinds) has a maker here"
 
 
 def make_tracker(name: str, first_frame: FrameInputs, num_points: int = 256, seed: int = 0,

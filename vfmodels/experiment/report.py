@@ -16,6 +16,7 @@ from vfdata.processing import frame_image
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
+from vfdata.tracker_kinds import tracker_label
 from vfdata.tracking import ground_truth_tracks
 from vfmodels.experiment.prepare import derived_path
 from vfmodels.experiment.variants import (
@@ -28,9 +29,6 @@ from vfmodels.experiment.variants import (
 )
 from vfmodels.reports import figures, tables
 from vfmodels.reports.tables import run_metrics
-
-TRACKER_LABELS = {"geometry": "Geometry-constrained (proposed)", "klt": "KLT (CoTracker stand-in)",
-                  "geometry+": "Geometry+ (with image flow)", "groundtruth": "Ground truth"}
 
 
 def load_runs(out: Path) -> dict[str, list[dict]]:
@@ -314,7 +312,8 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
     trackers = [t for t in TRACKER_SUFFIX if any(derived_path(e, t).is_file() for e in entries)]
     rows, per_recording = tracking_table(entries, trackers)
     if rows:
-        (out / "table3_tracking.md").write_text(tables.tracking_table_markdown(rows, TRACKER_LABELS))
+        labels = {tracker: tracker_label(tracker) for tracker in rows}
+        (out / "table3_tracking.md").write_text(tables.tracking_table_markdown(rows, labels))
         (out / "table3_tracking.csv").write_text(tables.tracking_table_csv(rows))
         (out / "tracking_per_recording.json").write_text(json.dumps(per_recording, indent=2))
         paths["table3.md"] = out / "table3_tracking.md"
