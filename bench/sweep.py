@@ -127,8 +127,17 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, help="training epochs (default: the configs')")
     parser.add_argument("--frames", type=int, help="frames per recording (default: the presets')")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--report-only", action="store_true", help="the tables and targets of OUT/sweep.json only")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.report_only:
+        report = json.loads((args.out / "sweep.json").read_text())
+        report["targets"] = targets(report)
+        (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
+        text = markdown(report)
+        (args.out / "sweep.md").write_text(text)
+        print(text)
+        return
     report = {"variants": args.variants, "seeds": []}
     for preset, preset_seeds in (("colon", args.colon_seeds), ("glove", args.glove_seeds)):
         for seed in preset_seeds:
@@ -140,9 +149,46 @@ def main() -> None:
             report["seeds"].append(row)
             print(seed_line(row, args.variants), flush=True)
             (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
+    report["targets"] = targets(report)
+    (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
     text = markdown(report)
     (args.out / "sweep.md").write_text(text)
     print("\n" + text)
+
+
+# Issue 32's targets on the sweep: (name, preset or None for all, what, threshold).
+TARGETS = {"colon": {"median_r2": 0.80, "worst_r2": 0.65}, "glove": {"median_r2": 0.88, "worst_r2": 0.75}}
+
+
+def targets(report: dict, variant: str = "visionforce") -> dict[str, dict]:
+    """Each of issue 32's targets: what the sweep measured, the target, whether it is met (claims-like)."""
+    out: dict[str, dict] = {}
+    for preset, want in TARGETS.items():
+        r2 = [r["forces"][variant]["r2"] for r in report["seeds"] if r["preset"] == preset and r["forces"].get(variant)]
+        if r2:
+            out[f"{preset}_median_r2"] = {"measured": round(float(np.median(r2)), 3), "target": want["median_r2"],
+                                          "met": bool(np.median(r2) >= want["median_r2"]), "seeds": len(r2)}
+            out[f"{preset}_worst_r2"] = {"measured": round(float(min(r2)), 3), "target": want["worst_r2"],
+                                         "met": bool(min(r2) >= want["worst_r2"]), "seeds": len(r2)}
+    ratios = [r["forces"][variant]["worst_view_over_val"] for r in report["seeds"] if r["forces"].get(variant)]
+    if ratios:
+        out["worst_view_over_val"] = {"measured": round(float(max(ratios)), 2), "target": 2.0,
+                                      "met": bool(max(ratios) <= 2.0)}
+    frames = [f for r in report["seeds"] for f in r["frames"]]
+    if frames:
+        z = np.array([f["z_err_deg"] for f in frames])
+        out["frames_reversed"] = {"measured": int((z > 90).sum()), "target": 0, "met": bool((z > 90).sum() == 0)}
+        out["frames_within_10deg"] = {"measured": round(float(np.mean(z <= 10)), 3), "target": 0.97,
+                                      "met": bool(np.mean(z <= 10) >= 0.97)}
+        unflagged = [f["id"] for r in report["seeds"] for f in r["frames"] if f["z_err_deg"] > 10 and not f["doubtful"]]
+        out["beyond_10deg_unflagged"] = {"measured": len(unflagged), "target": 0, "met": not unflagged}
+        iou = min(f["iou"] for f in frames)
+        out["min_first_mask_iou"] = {"measured": iou, "target": 0.85, "met": bool(iou >= 0.85)}
+    colon_walls = [r["wall_s"] for r in report["seeds"] if r["preset"] == "colon"]
+    if colon_walls:
+        out["colon_seed_minutes"] = {"measured": round(float(np.median(colon_walls)) / 60, 1), "target": 20,
+                                     "met": bool(np.median(colon_walls) <= 20 * 60)}
+    return out
 
 
 def seed_line(row: dict, variants: list[str]) -> str:
@@ -162,7 +208,7 @@ def markdown(report: dict) -> str:
     header = " | ".join(f"{v} R² / RMSE N / worst view ÷ val" for v in variants)
     lines = [f"| dataset | seed | test views (deg) | {header} | frames > 10° (flagged) | reversed | "
              "min first-mask IoU | wall min |",
-             "| --- " * (6 + len(variants)) + "|"]
+             "| --- " * (7 + len(variants)) + "|"]
     all_frames = []
     for row in report["seeds"]:
         cells = []
@@ -193,6 +239,10 @@ def markdown(report: dict) -> str:
                      f"{len(unflagged)}; flagged doubtful: {sum(bool(r['doubtful']) for r in all_frames)}")
         lines.append(f"- first-frame mask IoU: median {np.median([r['iou'] for r in all_frames]):.3f}, "
                      f"min {min(r['iou'] for r in all_frames):.3f}")
+    if report.get("targets"):
+        lines += ["", "| target | measured | wanted | met |", "| --- | --- | --- | --- |"]
+        lines += [f"| {name} | {t['measured']} | {t['target']} | {'yes' if t['met'] else 'no'} |"
+                  for name, t in report["targets"].items()]
     return "\n".join(lines) + "\n"
 
 
