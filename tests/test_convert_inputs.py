@@ -17,9 +17,9 @@ from convert_fixtures import out_of_order_chunks
 from rawfixtures import T0_NS, make_raw
 
 from vfdata.cli import main
-from vfdata.conversion.force_coverage import check_force_covers, default_force_gap_ns
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder, read_force_csv
 from vfdata.errors import InputError
+from vfdata.force_coverage import check_force_covers, default_force_gap_ns
 from vfdata.recording import Recording
 
 QUIET = ConvertOptions(progress=False, image_format="png")

@@ -16,8 +16,8 @@ from tqdm import tqdm
 
 from vfdata.calibration import StereoCalibration
 from vfdata.conversion import bag_scan, bag_topics, bags, rgbd_bags
-from vfdata.conversion.force_coverage import FORCE_GAP_PERIODS, MIN_FORCE_GAP_NS
 from vfdata.errors import InputError
+from vfdata.force_coverage import FORCE_GAP_PERIODS, MIN_FORCE_GAP_NS
 
 # How a bag without random access (`bag_index`) is read.
 STREAMING = ("streaming through rosbags (compressed chunks or bag): every message is read twice, images "

@@ -63,7 +63,6 @@ from vfdata.conversion.bag_topics import (
     choose_topics,
     topic_types,
 )
-from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.image_messages import image_message
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_meta import recording_fields
@@ -78,6 +77,7 @@ from vfdata.conversion.write_recording import (
     write_recording,
 )
 from vfdata.errors import InputError
+from vfdata.force_coverage import check_force_covers
 from vfdata.recording import layout
 from vfdata.recording.messages import (
     CameraInfo,

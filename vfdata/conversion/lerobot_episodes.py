@@ -30,7 +30,6 @@ import numpy as np
 from vfdata import __version__
 from vfdata.atomic import check_output
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_meta import recording_fields
 from vfdata.conversion.raw_rgbd import COLOR_VIEW, DEPTH_VIEW
@@ -44,6 +43,7 @@ from vfdata.conversion.write_recording import (
     write_recording,
 )
 from vfdata.errors import InputError
+from vfdata.force_coverage import check_force_covers
 from vfdata.lerobot import features as names
 from vfdata.lerobot.columns import image_bytes, read_rows, to_numpy
 from vfdata.lerobot.features import FeatureChoice, choose_features

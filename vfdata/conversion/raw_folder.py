@@ -17,7 +17,6 @@ import numpy as np
 from vfdata import __version__
 from vfdata.atomic import check_output
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import MAX_DEFAULT_WORKERS, ConvertOptions, default_workers
 from vfdata.conversion.raw_images import StereoSource, jpeg_colour_size
 from vfdata.conversion.raw_meta import read_meta, recording_fields
@@ -31,6 +30,7 @@ from vfdata.conversion.write_recording import (
     write_recording,
 )
 from vfdata.errors import InputError
+from vfdata.force_coverage import check_force_covers
 from vfdata.recording import layout
 
 # Imported from here by other modules and the tests.

@@ -19,7 +19,6 @@ import numpy as np
 
 from vfdata import __version__
 from vfdata.atomic import check_output
-from vfdata.conversion.force_coverage import check_force_covers
 from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_images import IMAGE_SUFFIXES
 from vfdata.conversion.raw_meta import read_meta, recording_fields
@@ -33,6 +32,7 @@ from vfdata.conversion.write_recording import (
     write_recording,
 )
 from vfdata.errors import InputError
+from vfdata.force_coverage import check_force_covers
 from vfdata.recording import layout
 from vfdata.recording.messages import CompressedImage, Image
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from vfdata.calibration import StereoCalibration
-from vfdata.conversion.force_coverage import default_force_gap_ns
 from vfdata.errors import InputError
+from vfdata.force_coverage import default_force_gap_ns
 from vfdata.lerobot import features as names
 from vfdata.lerobot.windows import pack_windows, window_length
 from vfdata.recording import Recording, layout
