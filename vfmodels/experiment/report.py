@@ -76,6 +76,10 @@ def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: d
     if transfer:
         (out / "transfer.md").write_text(transfer)
         paths["transfer.md"] = out / "transfer.md"
+    sure = tables.band_markdown(runs, labels, dataset)
+    if sure:
+        (out / "band.md").write_text(sure)
+        paths["band.md"] = out / "band.md"
     checked = claims(aggregated)
     if checked:
         (out / "claims.json").write_text(json.dumps(checked, indent=2))
