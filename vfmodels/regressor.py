@@ -220,17 +220,17 @@ class ForceRegressor(L.LightningModule):
             force, spread = turned.mean(0), turned.std(0, correction=0)
         else:
             force, spread = force_n, torch.zeros_like(force_n)
-        return Estimate(force, self.band_of(spread), spread)
+        return Estimate(force, self.band_of(spread, force), spread)
 
-    def band_of(self, spread_n: torch.Tensor) -> torch.Tensor:
-        """The band's half-width (N) for the views' spread (..., 3) N (`vfmodels.band.half_width`); NaN
-        without a calibration."""
+    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
+        """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each
+        (`vfmodels.band.half_width`); NaN without a calibration."""
         calibration = self.band_calibration
         if calibration is None:
             return torch.full_like(spread_n, float("nan"))
-        scale, weight = (torch.tensor(v, dtype=spread_n.dtype, device=spread_n.device)
-                         for v in (calibration.scale, calibration.weight))
-        return band.half_width(spread_n, scale, weight)
+        scale, weight, force_weight = (torch.tensor(v, dtype=spread_n.dtype, device=spread_n.device)
+                                       for v in (calibration.scale, calibration.weight, calibration.force_weight))
+        return band.half_width(spread_n, force_n.abs(), scale, weight, force_weight)
 
     def beyond_range(self, force_n: np.ndarray) -> np.ndarray:
         """How far (N, signed, 0 inside) each component of forces (..., 3) lies beyond the training forces'

@@ -352,8 +352,9 @@ def doubtful_markdown(doubtful: list[dict]) -> str:
 
 
 def summary_text(paths: dict[str, Path]) -> str:
-    """What the command prints at the end: Table I (or II), the claims and where everything is."""
-    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "doubtful.md") if key in paths]
+    """What the command prints at the end: Table I (or II), how sure (the band per view), the claims and where
+    everything is."""
+    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "band.md", "doubtful.md") if key in paths]
     if "claims" in paths:
         for claim in json.loads(paths["claims"].read_text()).values():
             lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")
