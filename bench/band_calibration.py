@@ -3,9 +3,9 @@
 
 For each run folder (RESULTS/runs/<variant>/seed<k>) it takes the validation frames the band is calibrated
 on and the test frames it is judged on: from the run's validation.npz and predictions.npz when they carry
-the views' spread and the frames' embeddings (runs made since the band's stretch), else by running the
-run's checkpoint again over its validation and test clips (`vfmodels.experiment.runner.test_predictions`,
-into OUT/rescored/; the run's folder is only read). Then:
+the views' spread (runs made since the band), else by running the run's checkpoint again over its
+validation and test clips (`vfmodels.experiment.runner.test_predictions`, into OUT/rescored/; the run's
+folder is only read). Then:
 - at the stated 90%: coverage and mean half-width per component, pooled and per test view, against the
   RMSE there; Spearman's correlation between per-view mean half-width and RMSE over every view given;
 - the calibration plot, OUT/band_calibration.png: for stated coverages 50-98% the band calibrated on
@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
 
-from vfmodels.band import band_metrics, calibrate, half_width, stretch_of  # noqa: E402
+from vfmodels.band import band_metrics, calibrate, half_width  # noqa: E402
 from vfmodels.metrics import force_metrics  # noqa: E402
 
 STATED = (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
@@ -40,7 +40,7 @@ def frames_of(run: Path, out: Path) -> tuple[dict, dict]:
     val_path, test_path = run / "validation.npz", run / "predictions.npz"
     if val_path.is_file() and test_path.is_file():
         val, test = dict(np.load(val_path)), dict(np.load(test_path))
-        if "embedding" in val and "embedding" in test:
+        if "spread" in val and "spread" in test:
             return val, test
     name = "_".join(run.parts[-5:-3] + run.parts[-2:])
     kept = out / "rescored" / name
@@ -77,13 +77,9 @@ def rescore(run: Path, kept: Path) -> None:
 def band_for(val: dict, test: dict, coverage: float) -> np.ndarray:
     """The test frames' half-widths (M, 3) N of the band calibrated on `val` at `coverage`."""
     known = np.isfinite(val["true"]).all(axis=1)
-    embedding = val.get("embedding")
-    embedding = embedding[known] if embedding is not None and embedding.shape[-1] else None
-    c = calibrate(val["pred"][known], val["true"][known], val["spread"][known], coverage, embedding)
-    stretch = stretch_of(test["embedding"].astype(np.float64), np.array(c.embedding_mean),
-                         np.array(c.embedding_precision), c.embedding_ref) if c.stretches else 1.0
+    c = calibrate(val["pred"][known], val["true"][known], val["spread"][known], coverage)
     return half_width(test["spread"], np.abs(test["pred"]), np.array(c.scale), np.array(c.weight),
-                      np.array(c.force_weight), stretch)
+                      np.array(c.force_weight))
 
 
 def views_of(test: dict) -> list[tuple[str, float]]:

@@ -17,16 +17,8 @@ So on frames exchangeable with validation's the band covers at least `coverage` 
 the frames that set the scale would not: on 30 frames the band then held 88%, tests/test_band.py). With
 fewer than `MIN_SPLIT_FRAMES` frames the band is constant, its scale from all of them.
 
-On views the model has not learnt the errors are larger than validation's, at the training view, where
-the band was calibrated, and nothing on validation can tell by how much. So the band is also stretched
-by how far the frame lies from the frames it was checked on: with d the Mahalanobis distance of the
-frame's embedding (the set encoder's output, `encode_frames`, of the unturned view) from the validation
-frames' embeddings (mean and shrunk covariance of the half that chooses the weights) and d_ref its median
-there, the half-width above is multiplied by `stretch = max(1, d / d_ref)`, inside the calibration too
-(the scale is set with it, so validation's coverage holds). The rule, not a fit: it assumes the error
-grows in proportion to the distance beyond validation's typical frame; measured in docs/results.md,
-"How sure" (on 3 colon runs it took the pooled coverage from 84% to 89% and Spearman(band, RMSE) over
-views from 0.2 to 0.5; judged then on runs it was not chosen on).
+On views the model has not learnt the errors are larger than validation's, at the training view, and
+the band covers less than it states: docs/results.md, "How sure", measures by how much.
 
 Beyond what training covered a model extrapolates, and no calibration on validation speaks for it:
 `beyond_range` says how far (N) each component of an estimate lies outside the training forces' range
@@ -55,7 +47,6 @@ MIN_FRAMES = 20  # validation frames below which no band is calibrated
 MIN_SPLIT_FRAMES = 200  # validation frames below which the band is constant (too few to choose a weight)
 SIMPLER_BY = 0.03  # a band with fewer signals is kept when at most this much wider (_narrowest_weights)
 BLOCK_FRAMES = 16  # the halves that choose the weight and set the scale alternate in blocks of this many
-SHRINK = 0.1  # the embeddings' covariance is shrunk this far towards its mean variance (few, correlated frames)
 
 
 @dataclass(frozen=True)
@@ -72,20 +63,9 @@ class BandCalibration:
     frames: int = 0
     train_min_n: tuple[float, float, float] | None = None
     train_max_n: tuple[float, float, float] | None = None
-    # the stretch (module docstring): validation embeddings' mean (D,), precision (D, D) and median distance
-    embedding_mean: tuple[float, ...] | None = None
-    embedding_precision: tuple[tuple[float, ...], ...] | None = None
-    embedding_ref: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        def plain(v):
-            return [plain(x) for x in v] if isinstance(v, tuple) else v
-
-        return {k: plain(v) for k, v in asdict(self).items()}
-
-    @property
-    def stretches(self) -> bool:
-        return self.embedding_ref is not None
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> BandCalibration:
@@ -102,20 +82,9 @@ class BandCalibration:
         coverage = values.get("coverage", COVERAGE)
         if not isinstance(coverage, (int, float)) or not 0 < coverage < 1:
             raise ValueError(f"band calibration: coverage {coverage!r} is not a share between 0 and 1")
-        mean, precision, ref = (values.get(k) for k in ("embedding_mean", "embedding_precision", "embedding_ref"))
-        if ref is not None:
-            try:
-                mean, precision = np.asarray(mean, dtype=np.float64), np.asarray(precision, dtype=np.float64)
-                ok = mean.ndim == 1 and precision.shape == (len(mean), len(mean)) and float(ref) > 0
-            except (TypeError, ValueError):
-                ok = False
-            if not ok:
-                raise ValueError("band calibration: embedding_mean/precision/ref are not a (D,) mean, a (D, D) "
-                                 "precision and a positive distance")
-            mean, precision, ref = tuple(mean.tolist()), tuple(map(tuple, precision.tolist())), float(ref)
         return cls(triple("scale"), triple("weight"), triple("force_weight", True) or (0.0, 0.0, 0.0),
                    float(coverage), int(values.get("frames", 0)), triple("train_min_n", True),
-                   triple("train_max_n", True), mean, precision, ref)
+                   triple("train_max_n", True))
 
     def with_training_range(self, low_n, high_n) -> BandCalibration:
         return replace(self, train_min_n=tuple(float(v) for v in low_n), train_max_n=tuple(float(v) for v in high_n))
@@ -134,68 +103,38 @@ def signal(spread_n, force_n, weight, force_weight):
     return (1.0 + (weight * spread_n) ** 2 + (force_weight * force_n) ** 2) ** 0.5
 
 
-def half_width(spread_n, force_n, scale_n, weight, force_weight, stretch=1.0):
+def half_width(spread_n, force_n, scale_n, weight, force_weight):
     """The band's half-width (N, the shape of `spread_n` (..., 3)) for the views' spread and the estimate
-    `force_n` (..., 3) N, times `stretch` (..., 1) (`stretch_of`): the estimate +- it is the band."""
-    return scale_n * signal(spread_n, force_n, weight, force_weight) * stretch
+    `force_n` (..., 3) N: the estimate +- it is the band."""
+    return scale_n * signal(spread_n, force_n, weight, force_weight)
 
 
-def mahalanobis(embedding, mean, precision):
-    """Distances (...,) of embeddings (..., D) from a mean (D,) under a precision matrix (D, D)."""
-    d = embedding - mean
-    return (((d @ precision) * d).sum(-1)).clip(min=0) ** 0.5
-
-
-def stretch_of(embedding, mean, precision, ref: float):
-    """max(1, d / d_ref) (..., 1) for embeddings (..., D): the band's stretch away from validation's frames."""
-    return (mahalanobis(embedding, mean, precision) / ref).clip(min=1.0)[..., None]
-
-
-def embedding_stats(embedding: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mean (D,), precision (D, D)) of embeddings (M, D), the covariance shrunk by `SHRINK`."""
-    z = np.asarray(embedding, dtype=np.float64)
-    cov = np.cov(z.T).reshape(z.shape[1], z.shape[1])
-    cov = (1 - SHRINK) * cov + SHRINK * max(float(np.trace(cov)) / len(cov), 1e-12) * np.eye(len(cov))
-    return z.mean(axis=0), np.linalg.inv(cov)
-
-
-def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE,
-              embedding: np.ndarray | None = None) -> BandCalibration | None:
+def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE
+              ) -> BandCalibration | None:
     """Split-conformal calibration on validation frames (module docstring): forces (M, 3) N predicted
-    and measured, the views' spread (M, 3) N and, for the stretch, the frames' embeddings (M, D). None
-    with fewer than `MIN_FRAMES` frames with a force."""
+    and measured, the views' spread (M, 3) N. None with fewer than `MIN_FRAMES` frames with a force."""
     pred, true, spread = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (pred_n, true_n, spread_n))
     known = np.isfinite(true).all(axis=1) & np.isfinite(pred).all(axis=1) & np.isfinite(spread).all(axis=1)
-    if embedding is not None:
-        embedding = np.asarray(embedding, dtype=np.float64).reshape(len(pred), -1)
-        known &= np.isfinite(embedding).all(axis=1)
     if known.sum() < max(MIN_FRAMES, math.ceil(1 / (1 - coverage))):
         return None
     error, spread, size = np.abs(pred - true)[known], spread[known], np.abs(pred)[known]
-    stretch, stats = np.ones((len(error), 1)), (None, None, None)
     if len(error) >= MIN_SPLIT_FRAMES:
         choose = (np.arange(len(error)) // BLOCK_FRAMES) % 2 == 0
-        if embedding is not None and choose.sum() > 2 * embedding.shape[1]:
-            mean, precision = embedding_stats(embedding[known][choose])
-            ref = float(np.median(mahalanobis(embedding[known][choose], mean, precision)))
-            if ref > 0:
-                stretch = stretch_of(embedding[known], mean, precision, ref)
-                stats = (tuple(mean.tolist()), tuple(map(tuple, precision.tolist())), ref)
-        weights = [_narrowest_weights(error[choose, c] / stretch[choose, 0], spread[choose, c], size[choose, c],
-                                      coverage) for c in range(3)]
+        weights = [_narrowest_weights(error[choose, c], spread[choose, c], size[choose, c], coverage)
+                   for c in range(3)]
         scaled = ~choose
     else:
         weights, scaled = [(0.0, 0.0)] * 3, np.ones(len(error), bool)
-    scales = [conformal_quantile(error[scaled, c] / (signal(spread[scaled, c], size[scaled, c], *weights[c])
-                                                     * stretch[scaled, 0]), coverage) for c in range(3)]
+    scales = [conformal_quantile(error[scaled, c] / signal(spread[scaled, c], size[scaled, c], *weights[c]), coverage)
+              for c in range(3)]
     return BandCalibration(tuple(scales), tuple(w[0] for w in weights), tuple(w[1] for w in weights),
-                           float(coverage), int(known.sum()), None, None, *stats)
+                           float(coverage), int(known.sum()))
 
 
 def _narrowest_weights(error: np.ndarray, spread: np.ndarray, size: np.ndarray, coverage: float
                        ) -> tuple[float, float]:
     """The candidate weights (of the spread, of |F|; 1/N) whose band of the stated coverage is narrowest
-    on these frames (`error` already divided by the stretch)."""
+    on these frames."""
     def candidates(values: np.ndarray) -> list[float]:
         typical = float(np.median(values))
         return [0.0] + ([s / typical for s in WEIGHT_STEPS] if typical > 1e-9 else [])
@@ -257,8 +196,7 @@ def describe(calibration: BandCalibration | None) -> str:
         return "no band (not calibrated)"
     parts = [f"{n} {s:.3g} N (spread x{w:.3g}, |F| x{f:.3g})" for n, s, w, f in
              zip(("Fx", "Fy", "Fz"), calibration.scale, calibration.weight, calibration.force_weight, strict=True)]
-    stretch = "; stretched away from validation's frames" if calibration.stretches else ""
-    return f"{calibration.coverage:.0%} band on {calibration.frames} validation frames: " + ", ".join(parts) + stretch
+    return f"{calibration.coverage:.0%} band on {calibration.frames} validation frames: " + ", ".join(parts)
 
 
 def format_band_table(result: dict[str, dict], calibration: BandCalibration | None = None) -> str:

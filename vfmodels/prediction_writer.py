@@ -23,8 +23,7 @@ from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
 
-FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread", "stretch",
-          "embedding")
+FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread")
 VECTORS = ("pred", "true", "band", "spread")  # (M, 3) N
 
 
@@ -32,9 +31,8 @@ class PredictionCollector(BasePredictionWriter):
     """Per-frame predictions of a `trainer.predict` run, available as `frames` after it: recording
     (M,) str, orientation_deg (M,), frame_time_ns (M,) int64, pred (M, 3) N, true (M, 3) N (NaN where
     the batches had no measured force), band (M, 3) N (the half-width of each component's band, NaN
-    without a calibration), spread (M, 3) N and stretch (M, 1) (its signals: `vfmodels.regressor.Estimate`)
-    and embedding (M, D) (the frames' embeddings the stretch measures; D = 0 without), sorted by recording
-    and time."""
+    without a calibration) and spread (M, 3) N (its signal: `vfmodels.regressor.Estimate`), sorted by
+    recording and time."""
 
     def __init__(self) -> None:
         super().__init__(write_interval="batch")
@@ -53,8 +51,6 @@ class PredictionCollector(BasePredictionWriter):
         true = prediction["true_n"].numpy() if "true_n" in prediction else np.full_like(pred, np.nan)
         band = prediction["band_n"].numpy() if "band_n" in prediction else np.full_like(pred, np.nan)
         spread = prediction["spread_n"].numpy() if "spread_n" in prediction else np.full_like(pred, np.nan)
-        stretch = prediction["stretch"].numpy() if "stretch" in prediction else np.ones((b, t, 1))
-        embedding = prediction["embedding"].numpy() if "embedding" in prediction else np.zeros((b, t, 0))
         self._parts.append({
             "recording": np.repeat(np.asarray(prediction["recording"], dtype=object), t).astype(str),
             "orientation_deg": np.repeat(prediction["orientation_deg"].numpy().astype(np.float64), t),
@@ -64,8 +60,6 @@ class PredictionCollector(BasePredictionWriter):
             "true": true.reshape(-1, 3).astype(np.float64),
             "band": band.reshape(-1, 3).astype(np.float64),
             "spread": spread.reshape(-1, 3).astype(np.float64),
-            "stretch": stretch.reshape(b * t, 1).astype(np.float64),
-            "embedding": embedding.reshape(b * t, -1).astype(np.float32),
         })
 
     def on_predict_end(self, trainer, pl_module) -> None:
@@ -75,8 +69,7 @@ class PredictionCollector(BasePredictionWriter):
             torch.distributed.all_gather_object(gathered, parts)
             parts = [p for rank in gathered for p in rank]
         if not parts:
-            shapes = {**dict.fromkeys(VECTORS, (0, 3)), "stretch": (0, 1), "embedding": (0, 0)}
-            self.frames = {k: np.zeros(shapes.get(k, 0)) for k in FIELDS if k != "position"}
+            self.frames = {k: np.zeros((0, 3) if k in VECTORS else 0) for k in FIELDS if k != "position"}
         else:
             frames = {k: np.concatenate([p[k] for p in parts]) for k in FIELDS}
             keep = latest_clip_frames(frames["recording"], frames["frame_time_ns"], frames["position"])

@@ -49,16 +49,14 @@ COMPILED_PREFIX = "_compiled."
 
 
 class Estimate(NamedTuple):
-    """What the model says of each frame, tensors (..., 3) in N in the object frame: the force (the mean
-    over the symmetry views), the half-width of its band (`vfmodels.band`: force +- band_n covers the
+    """What the model says of each frame, every tensor (..., 3) in N in the object frame: the force (the
+    mean over the symmetry views), the half-width of its band (`vfmodels.band`: force +- band_n covers the
     calibration's stated share of frames; NaN without a calibration) and the views' spread (the band's
-    signal: their population std, 0 with one view); and (..., 1) the band's stretch, how far the frame's
-    embedding lies from the validation frames' (`vfmodels.band.stretch_of`: >= 1; 1 without)."""
+    signal: their population std, 0 with one view)."""
 
     force_n: torch.Tensor
     band_n: torch.Tensor
     spread_n: torch.Tensor
-    stretch: torch.Tensor
 
 
 class ForceRegressor(L.LightningModule):
@@ -175,18 +173,9 @@ class ForceRegressor(L.LightningModule):
 
     def estimate(self, batch: dict[str, Any]) -> Estimate:
         """The forces (B, T, 3) in N of a batch of clips, averaged over the symmetry views, with their band."""
-        return self._estimate_and_embedding(batch)[0]
-
-    def _estimate_and_embedding(self, batch: dict[str, Any]) -> tuple[Estimate, torch.Tensor | None]:
-        """`estimate`, and the frames' embeddings (B, T, D) of the unturned view (None for a model without
-        the causal interface: it has no per-frame embedding, and its band no stretch)."""
-        x, valid = batch[self.model.input_key], batch.get("valid")
-        if self.causal:  # the path of `vfdata predict` and `live`: the band's stretch needs the embeddings
-            z = self.encode_frames(x, valid)
-            return self.decode_frames(z)[0], self._unturned(z)
         model = self._compiled if self._compiled is not None else self.model
-        x, valid = self._views_of(x, valid)
-        return self._estimate_of_views(self.denormalise_force(model(self.normalise_input(x), valid))), None
+        x, valid = self._views_of(batch[self.model.input_key], batch.get("valid"))
+        return self._estimate_of_views(self.denormalise_force(model(self.normalise_input(x), valid)))
 
     def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
         """Forces (B, T, 3) in N."""
@@ -211,11 +200,7 @@ class ForceRegressor(L.LightningModule):
         from). `state` None: the zero state a clip starts from, so one call on a clip's embeddings gives
         what the test scores."""
         out, state = self.model.decode_frames(z, state)
-        return self._estimate_of_views(self.denormalise_force(out), self._unturned(z)), state
-
-    def _unturned(self, z: torch.Tensor) -> torch.Tensor:
-        """Embeddings (V * B, T, D) of every view -> the first view's (B, T, D), the inputs as they are."""
-        return z.unflatten(0, (max(1, 2 * self.symmetry_turns), -1))[0]
+        return self._estimate_of_views(self.denormalise_force(out)), state
 
     def _views_of(self, x: torch.Tensor, valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Inputs (B, ...) -> every view's (V * B, ...), in one batch: one network pass for all views."""
@@ -226,38 +211,26 @@ class ForceRegressor(L.LightningModule):
         both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
         return turned.flatten(0, 1), both
 
-    def _estimate_of_views(self, force_n: torch.Tensor, embedding: torch.Tensor | None = None) -> Estimate:
+    def _estimate_of_views(self, force_n: torch.Tensor) -> Estimate:
         """Forces (V * B, ..., 3) in N of every view -> the `Estimate` (B, ..., 3): each view turned back,
-        their mean, their spread and its band (stretched by the distance of `embedding` (B, ..., D), the
-        unturned view's, from validation's)."""
+        their mean, their spread and its band."""
         if self.symmetry_turns:
             views = torch.stack(symmetry_views(self.symmetry_turns, device=force_n.device))
             turned = torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views)
             force, spread = turned.mean(0), turned.std(0, correction=0)
         else:
             force, spread = force_n, torch.zeros_like(force_n)
-        stretch = self.stretch_of(embedding, force[..., :1])
-        return Estimate(force, self.band_of(spread, force, stretch), spread, stretch)
+        return Estimate(force, self.band_of(spread, force), spread)
 
-    def stretch_of(self, embedding: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
-        """The band's stretch (..., 1) for per-frame embeddings (..., D) (`vfmodels.band.stretch_of`); ones
-        (shaped `like`) without embeddings or a calibration that stretches."""
-        calibration = self.band_calibration
-        if embedding is None or calibration is None or not calibration.stretches:
-            return torch.ones_like(like)
-        mean, precision = (torch.tensor(v, dtype=embedding.dtype, device=embedding.device)
-                           for v in (calibration.embedding_mean, calibration.embedding_precision))
-        return band.stretch_of(embedding, mean, precision, calibration.embedding_ref).to(like.dtype)
-
-    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor, stretch: torch.Tensor) -> torch.Tensor:
-        """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each, and the
-        stretch (..., 1) (`vfmodels.band.half_width`); NaN without a calibration."""
+    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
+        """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each
+        (`vfmodels.band.half_width`); NaN without a calibration."""
         calibration = self.band_calibration
         if calibration is None:
             return torch.full_like(spread_n, float("nan"))
         scale, weight, force_weight = (torch.tensor(v, dtype=spread_n.dtype, device=spread_n.device)
                                        for v in (calibration.scale, calibration.weight, calibration.force_weight))
-        return band.half_width(spread_n, force_n.abs(), scale, weight, force_weight, stretch)
+        return band.half_width(spread_n, force_n.abs(), scale, weight, force_weight)
 
     def beyond_range(self, force_n: np.ndarray) -> np.ndarray:
         """How far (N, signed, 0 inside) each component of forces (..., 3) lies beyond the training forces'
@@ -288,20 +261,16 @@ class ForceRegressor(L.LightningModule):
         self._evaluate(batch, "test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
-        """{"force_n": (B, T, 3) N, "band_n" and "spread_n" (B, T, 3) N, "stretch" (B, T, 1) (`Estimate`),
-        "embedding" (B, T, D) (the unturned view's; D = 0 for a model without them), "recording": [...],
+        """{"force_n": (B, T, 3) N, "band_n" and "spread_n" (B, T, 3) N (`Estimate`), "recording": [...],
         "frame_time_ns": (B, T), "orientation_deg": (B,), and "true_n" (B, T, 3) N when the batch has the
         measured force} (CPU tensors). A clip of a mirrored recording (batch "side" -1) has its Fy turned
         back to the sensor's."""
         b = len(batch[self.model.input_key])
-        estimate, embedding = self._estimate_and_embedding(batch)
+        estimate = self.estimate(batch)
         out = {
             "force_n": self.unmirror(estimate.force_n, batch),
             "band_n": estimate.band_n.detach().float().cpu(),
             "spread_n": estimate.spread_n.detach().float().cpu(),
-            "stretch": estimate.stretch.detach().float().cpu(),
-            "embedding": (torch.zeros(*estimate.force_n.shape[:-1], 0) if embedding is None
-                          else embedding.detach().float().cpu()),
             "recording": list(batch.get("recording", [""] * b)),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
             "orientation_deg": torch.as_tensor(batch.get("orientation_deg", torch.zeros(b))).float().cpu(),
@@ -325,7 +294,7 @@ class ForceRegressor(L.LightningModule):
     # ---- metrics -------------------------------------------------------------------------------
 
     def _evaluate(self, batch: dict[str, Any], split: str) -> None:
-        estimate, embedding = self._estimate_and_embedding(batch)
+        estimate = self.estimate(batch)
         pred = self.normalise_force(estimate.force_n)
         force_n = batch["force"]
         b, t = force_n.shape[:2]
@@ -340,8 +309,6 @@ class ForceRegressor(L.LightningModule):
             true_n=true_n.numpy().reshape(-1, 3),
             band_n=estimate.band_n.detach().float().cpu().numpy().reshape(-1, 3),
             spread_n=estimate.spread_n.detach().float().cpu().numpy().reshape(-1, 3),
-            embedding=(np.full((b * t, 0), np.nan, np.float32) if embedding is None
-                       else embedding.detach().float().cpu().numpy().reshape(b * t, -1)),
             orientation_deg=np.repeat(torch.as_tensor(orientation).cpu().numpy(), t),
             recording=np.repeat(np.asarray(batch.get("recording", [""] * b), dtype=object), t),
             frame_time_ns=(batch["frame_time_ns"].cpu().numpy().reshape(-1) if "frame_time_ns" in batch
@@ -373,16 +340,12 @@ class ForceRegressor(L.LightningModule):
         # The band of these weights, from their validation frames: the checkpoint saved after this
         # validation holds both (with EMAWeightAveraging, validation ran on the averaged weights, which
         # the checkpoint saves).
-        self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"], frames["embedding"])
+        self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"])
 
-    def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray,
-                       embedding: np.ndarray | None = None) -> None:
-        """Sets `band_calibration` from validation frames (M, 3) N and their embeddings (M, D)
-        (`vfmodels.band.calibrate`), with the training range when it is known (kept from the calibration it
-        replaces otherwise)."""
-        if embedding is not None and not embedding.shape[-1]:
-            embedding = None
-        calibration = band.calibrate(pred_n, true_n, spread_n, embedding=embedding)
+    def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray) -> None:
+        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.band.calibrate`), with the
+        training range when it is known (kept from the calibration it replaces otherwise)."""
+        calibration = band.calibrate(pred_n, true_n, spread_n)
         train_range = self._train_range
         if train_range is None and self.band_calibration is not None and self.band_calibration.train_min_n:
             train_range = (self.band_calibration.train_min_n, self.band_calibration.train_max_n)
