@@ -286,6 +286,36 @@ def test_transfer_table_compares_each_test_orientation_with_validation(tmp_path)
     assert all(f"{a:g}°" in text for a in per)
 
 
+def test_the_report_gives_the_bands_coverage_and_width_per_view(tmp_path, capsys):
+    """A run whose frames carry a band (as a model with a calibration writes them): metrics.json and band.md
+    give its coverage and mean half-width per component, pooled and per test view, and the command prints
+    them; validation.npz keeps the frames it was calibrated on."""
+    from vfdata.cli import main
+    from vfmodels.experiment.runs import write_run
+
+    manifest = write_manifest(tmp_path)
+    out = tmp_path / "results"
+    run = out / "runs" / "visionforce" / "seed0"
+    run.mkdir(parents=True)
+    test = _fake_predictions(0.2, 0)
+    # a band of +-0.33 N: 90% of N(0, 0.2) errors at 90°; the 180° view's error is three times as large
+    test["pred"][120:] = test["true"][120:] + 3 * (test["pred"][120:] - test["true"][120:])
+    test["band"], test["spread"] = np.full_like(test["true"], 0.33), np.zeros_like(test["true"])
+    validation = {**_fake_predictions(0.2, 1), "orientation_deg": np.zeros(240)}
+    summary = write_run(run, test, {"variant": "visionforce"}, validation)
+    assert set(dict(np.load(run / "validation.npz"))) >= {"pred", "true"}
+    cover = {float(k): g["coverage"] for k, g in summary["band"]["groups"].items()}
+    assert cover[90.0] > 0.8 > 0.5 > cover[180.0] and summary["band"]["pooled"]["half_width_fz"] == pytest.approx(0.33)
+    assert main(["experiment", str(manifest), "--out", str(out), "--reports-only"]) == 0
+    printed = capsys.readouterr().out
+    rows = {line.split("|")[2].strip(): line.split("|") for line in (out / "band.md").read_text().splitlines()
+            if line.startswith("| VisionForce")}
+    assert set(rows) == {"pooled", "90°", "180°"} and "How sure" in printed
+    coverage = [float(v.strip(" %")) / 100 for v in rows["180°"][4].split("/")]
+    assert np.mean(coverage) == pytest.approx(cover[180.0], abs=0.01)
+    assert [float(v) for v in rows["90°"][5].split("/")] == [0.33, 0.33, 0.33]
+
+
 @pytest.mark.slow
 def test_quickstart_from_the_command_line(tmp_path, capsys):
     """`vfdata quickstart` (one epoch of `visionforce`): Table I printed with the run's RMSE, recomputed here

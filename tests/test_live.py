@@ -25,11 +25,12 @@ from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder  # n
 from vfdata.errors import InputError, OutputError, OutputExistsError  # noqa: E402
 from vfdata.foxglove_server import FoxgloveServer  # noqa: E402
 from vfdata.recording import Recording, layout  # noqa: E402
-from vfdata.recording.derived import DerivedRecording, read_force_estimate  # noqa: E402
+from vfdata.recording.derived import DerivedRecording, read_force_band, read_force_estimate  # noqa: E402
 from vfdata.recording.inspect import check_file  # noqa: E402
 from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
 from vfdata.sim import synthesize  # noqa: E402
 from vfmodels import predict  # noqa: E402
+from vfmodels.band import BandCalibration  # noqa: E402
 from vfmodels.commands import live  # noqa: E402
 
 FRAMES = 8
@@ -45,7 +46,11 @@ def recording(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory) -> Path:
-    return _save_checkpoint(_regressor(), tmp_path_factory.mktemp("ckpt") / "m.ckpt",
+    """An untrained model with a band calibration (as training leaves it) and a training range around 0 N."""
+    regressor = _regressor()
+    regressor.band_calibration = BandCalibration((0.2, 0.3, 0.4), (5.0, 5.0, 5.0), (0.5, 0.5, 0.5), 0.9, 300,
+                                                 (-0.05, -0.05, -0.05), (0.05, 0.05, 0.05))
+    return _save_checkpoint(regressor, tmp_path_factory.mktemp("ckpt") / "m.ckpt",
                             {"spec": {"input": "tracks", "fps": 30.0}})
 
 
@@ -126,7 +131,8 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     record = tmp_path / "live.mcap"
     # The whole image's depth, as offline processing (the live default's region of interest: below).
     args = _args(recording, ckpt, record=record, wait_for_client=20, speed=1.0, depth_roi_margin=0)
-    code, client = _serve(args, (layout.FORCE_ESTIMATE, layout.TRACKING_POINTS))
+    code, client = _serve(args, (layout.FORCE_ESTIMATE, layout.TRACKING_POINTS, layout.FORCE_BAND,
+                                 layout.FORCE_BEYOND))
     assert code == 0 and client.closed_cleanly
     channel = client.advertised[layout.FORCE_ESTIMATE]
     assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == \
@@ -142,6 +148,13 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     np.testing.assert_allclose(np.array([w.force for w in wrenches]), forces, rtol=1e-4, atol=1e-4)
     assert len(client.of(layout.TRACKING_POINTS)) == FRAMES
     assert not client.of(layout.LEFT_IMAGE)  # not subscribed: not sent
+    # beside each force its band and its distance beyond training, as `vfdata predict` writes them
+    _, offline_band, offline_beyond = read_force_band(offline.force_mcap)
+    for topic, expected in ((layout.FORCE_BAND, offline_band), (layout.FORCE_BEYOND, offline_beyond)):
+        served = [decode("geometry_msgs/msg/WrenchStamped", payload) for _, payload in client.of(topic)]
+        np.testing.assert_array_equal([w.stamp_ns for w in served], times)
+        np.testing.assert_allclose(np.array([w.force for w in served]), expected, rtol=1e-4, atol=1e-4)
+    assert (offline_band >= [0.2, 0.3, 0.4]).all() and (offline_beyond != 0).any()
 
     # The recording holds everything served, in the files' layout, and reads as a force file.
     rec_times, rec_forces = read_force_estimate(record)

@@ -10,6 +10,7 @@ from torch.utils.data import DataLoader
 
 from vfdata.errors import InputError
 from vfmodels import ForceRegressor, SetTransformerLSTM
+from vfmodels.band import BandCalibration
 
 
 def trainer(tmp_path, epochs, **kw):
@@ -172,20 +173,27 @@ def test_symmetry_views_make_predictions_equivariant(turns):
 @pytest.mark.parametrize("turns", [0, 1, 2])
 def test_the_causal_interface_gives_the_tested_forces(turns):
     """`encode_frames` then `decode_frames` (what prediction and the live estimator run) give the forces
-    the test scores (`predict_forces`), views and normalisation included; the state carried over two
-    halves gives one run over the whole."""
+    the test scores (`predict_forces`) and the band it scores (`estimate`), views and normalisation
+    included; the state carried over two halves gives one run over the whole."""
     torch.manual_seed(1)
     model = SetTransformerLSTM(in_features=6, dim=16, heads=2, inducing_points=4, isab_blocks=1, lstm_hidden=8)
     reg = ForceRegressor(model, symmetry_turns=turns).eval()
     reg.set_normalisation(torch.zeros(6), torch.full((6,), 3.0), torch.tensor([0.5, 0.0, -1.0]), torch.ones(3) * 2)
+    reg.band_calibration = BandCalibration((0.4, 0.5, 0.6), (2.0, 0.0, 1.0))
     x, valid = torch.randn(3, 7, 10, 6) * 3, torch.rand(3, 7, 10) > 0.2
     with torch.no_grad():
-        tested = reg.predict_forces({"tokens": x, "valid": valid})
+        tested, scored = reg.predict_forces({"tokens": x, "valid": valid}), reg.estimate({"tokens": x, "valid": valid})
         z = reg.encode_frames(x, valid)
         assert z.shape == (max(1, 2 * turns) * 3, 7, 16)
-        forces, _ = reg.decode_frames(z)
-        torch.testing.assert_close(forces, tested, atol=1e-5, rtol=1e-4)
+        estimate, _ = reg.decode_frames(z)
+        torch.testing.assert_close(estimate.force_n, tested, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(estimate.band_n, scored.band_n, atol=1e-5, rtol=1e-4)
         first, state = reg.decode_frames(z[:, :4])
         rest, _ = reg.decode_frames(z[:, 4:], state)
-        torch.testing.assert_close(torch.cat([first, rest], dim=1), tested, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(torch.cat([first.force_n, rest.force_n], dim=1), tested, atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(torch.cat([first.band_n, rest.band_n], dim=1), scored.band_n, atol=1e-5, rtol=1e-4)
+    # the band: the calibrated scale where the views agree, wider where they do not (Fy's weight is 0: constant)
+    assert (estimate.band_n >= torch.tensor([0.4, 0.5, 0.6]) - 1e-6).all()
+    assert torch.allclose(estimate.band_n[..., 1], torch.tensor(0.5))
+    assert (estimate.spread_n > 0).any() == (turns > 0)
     assert reg.causal

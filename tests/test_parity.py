@@ -1,8 +1,10 @@
 """One checkpoint, one recording, every way a user runs it: the forces `vfdata experiment` scores (its
 test: `trainer.predict` over the test clips), `vfdata predict`, `vfdata predict --stream` and `vfdata live
 --record` agree to 1e-4 N wherever they define the same clip, for a model tested as `visionforce` is (the
-mean of each clip and its mirror, `symmetry_turns: 1`). Along the way: `vfdata process` and `vfdata
-predict` from the command line (docs/models.md, "What each path computes")."""
+mean of each clip and its mirror, `symmetry_turns: 1`), and so do the bands beside them
+(`/force/estimate/band`) and the marks of forces beyond the training range (`/force/estimate/beyond`).
+Along the way: `vfdata process` and `vfdata predict` from the command line (docs/models.md, "What each
+path computes")."""
 
 from __future__ import annotations
 
@@ -24,9 +26,10 @@ from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import clip_starts, segments
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.recording import Recording
-from vfdata.recording.derived import read_force_estimate, read_tracks
+from vfdata.recording.derived import read_force_band, read_force_estimate, read_tracks
 from vfdata.sim import synthesize
 from vfmodels import ForceRegressor, SetTransformerLSTM
+from vfmodels.band import BandCalibration
 from vfmodels.experiment.runner import test_predictions as experiment_test
 from vfmodels.metrics import force_metrics
 
@@ -45,12 +48,16 @@ def root(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def ckpt(root) -> Path:
-    """An untrained `visionforce`-shaped model, saved as training saves it (spec, tracker, symmetry views)."""
+    """An untrained `visionforce`-shaped model, saved as training saves it (spec, tracker, symmetry views,
+    a band calibration whose views' weight makes the band follow their spread, and a training range narrow
+    enough that some estimates lie beyond it)."""
     torch.manual_seed(0)
     model = SetTransformerLSTM(in_features=12, dim=32, heads=4, inducing_points=16, lstm_hidden=64)
     regressor = ForceRegressor(model, symmetry_turns=1)
     regressor.set_normalisation(torch.zeros(12), torch.tensor([1, 1, 10, 1, 1, 30, 2, 2, 2, 30, 30, 30.0]),
                                 torch.tensor([0.1, -0.2, 0.5]), torch.tensor([1.0, 2.0, 0.5]))
+    regressor.band_calibration = BandCalibration((0.3, 0.5, 0.2), (20.0, 10.0, 40.0), (0.0, 0.0, 1.0), 0.9, 500,
+                                                 (-0.5, -0.5, 0.46), (0.5, 0.5, 0.47))
     checkpoint = {"state_dict": regressor.state_dict(), "hyper_parameters": dict(regressor.hparams),
                   "datamodule_hyper_parameters": {"spec": SPEC}, "ForceDataModule": {"tracker": "klt"}}
     regressor.on_save_checkpoint(checkpoint)
@@ -98,7 +105,7 @@ def predicted(root, ckpt, processed) -> tuple[Path, str]:
     return root / "offline" / "mini_002.force.mcap", out.getvalue()
 
 
-def test_vfdata_predict_writes_forces_and_reports_the_rmse(root, predicted, processed):
+def test_vfdata_predict_writes_forces_and_reports_the_rmse_and_band(root, predicted, processed):
     path, _ = predicted
     times, force = read_force_estimate(path)
     assert len(times) == FRAMES and np.isfinite(force).all()
@@ -108,6 +115,9 @@ def test_vfdata_predict_writes_forces_and_reports_the_rmse(root, predicted, proc
     with Recording.open(path) as rec:
         meta = rec.metadata_records["visionforce.derived"]
     assert meta["window"] == "16" and json.loads(meta["clip_spec"])["features"] == SPEC["features"]
+    assert json.loads(meta["band"])["scale"] == [0.3, 0.5, 0.2] and int(meta["frames_beyond_training"]) > 0
+    assert "band: 90% band on 500 validation frames" in predicted[1]
+    assert "band against the force sensor: coverage Fx" in predicted[1]
 
 
 def test_every_path_gives_the_forces_the_experiment_scored(root, ckpt, scored, predicted):
@@ -131,6 +141,21 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, ckpt, scored, p
     for name, (times, force) in paths.items():
         np.testing.assert_array_equal(times, offline_times, err_msg=name)
         np.testing.assert_allclose(force, offline, rtol=0, atol=1e-4, err_msg=name)
+    # the bands and the marks beyond training, too
+    _, offline_band, offline_beyond = read_force_band(predicted[0])
+    # the untrained model's views disagree on Fy (its mean, -0.2 N, is turned to +0.2 N by the mirror)
+    assert np.isfinite(offline_band).all() and (offline_band >= np.array([0.3, 0.5, 0.22]) - 1e-6).all()
+    assert offline_band[:, 1].min() > 1.0 and offline_band[:, 1].std() > 0
+    # Fz, 0.46-0.48 N, runs out of the training range (0.46-0.47 N, 0.001 N of margin) after its first frames
+    assert 0 < (offline_beyond != 0).any(axis=1).sum() < FRAMES
+    files = {"vfdata predict --stream": root / "stream" / "mini_002.force.mcap"}
+    if "vfdata live --record" in paths:
+        files["vfdata live --record"] = root / "live.mcap"
+    for name, path in files.items():
+        times, band, beyond = read_force_band(path)
+        np.testing.assert_array_equal(times, offline_times, err_msg=name)
+        np.testing.assert_allclose(band, offline_band, rtol=0, atol=1e-4, err_msg=name)
+        np.testing.assert_array_equal(beyond != 0, offline_beyond != 0, err_msg=name)
 
     # The test scores each frame once, from the clip it ends latest in; `vfdata predict` runs the latest
     # 16 frames ending at it. Where those are the same clip, the forces are the same.
@@ -138,6 +163,7 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, ckpt, scored, p
     same = scored_clip_starts(offline_times, 16, 4) == np.maximum(0, np.arange(FRAMES) - 15)
     assert same.sum() == 17 and not same[16:19].any()
     np.testing.assert_allclose(offline[same], scored["pred"][same], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(offline_band[same], scored["band"][same], rtol=0, atol=1e-4)
     # elsewhere the test's clip is shorter: close, not equal
     assert 0 < np.abs(offline[~same] - scored["pred"][~same]).max() < 0.5
     # and the RMSE `vfdata predict` prints is its forces' against the sensor, as the experiment's metric

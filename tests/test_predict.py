@@ -14,7 +14,7 @@ from vfdata.clips.tokens import point_tokens, recording_side, top_bottom, track_
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
-from vfdata.recording.derived import Tracks, read_force_estimate, read_tracks, write_force_estimate
+from vfdata.recording.derived import Tracks, read_force_band, read_force_estimate, read_tracks, write_force_estimate
 from vfmodels import ForceRegressor, SetTransformerLSTM, overlay, predict
 from vfmodels.live import StreamingForceEstimator, StreamingForceModel
 from vfmodels.reports.figures import plot_force_series
@@ -91,6 +91,17 @@ def test_force_series_plot(tmp_path):
     force = np.stack([np.sin(t / 5), np.cos(t / 5), t / 50], axis=1)
     path = plot_force_series(force, tmp_path / "f.png", measured_n=force + 0.1)
     assert cv2.imread(str(path)).shape[0] > 100
+    beyond = np.zeros_like(force)
+    beyond[40:, 2] = 0.3
+    shaded = plot_force_series(force, tmp_path / "band.png", measured_n=force + 0.1, band_n=np.full_like(force, 0.4),
+                               beyond_n=beyond, coverage=0.9)
+    assert _grey_pixels(cv2.imread(str(shaded))) > 3 * _grey_pixels(cv2.imread(str(path)))  # the band: grey shading
+
+
+def _grey_pixels(image: np.ndarray) -> int:
+    """Pixels of a BGR image that are grey (not white, not coloured)."""
+    colourless = np.ptp(image.astype(int), axis=2) < 6
+    return int((colourless & (image.min(axis=2) < 240)).sum())
 
 
 def test_point_tokens_are_positions_and_central_difference_velocities():
@@ -359,6 +370,19 @@ def test_force_mcap_round_trip(tmp_path):
         np.testing.assert_allclose(tf.transforms[0].translation, [0.001, 0.002, 0.08])
         meta = rec.metadata_records[layout.DERIVED_METADATA]
         assert meta["x_axis"] == "arbitrary" and meta["torque_estimated"] == "false"
+    assert read_force_band(path) is None  # written without a band: none to read
+
+    band, beyond = force / 10 + 0.5, np.zeros_like(force)
+    band[0] = np.nan  # a frame without a calibrated band stays NaN
+    beyond[3] = [0.0, -1.5, 2.0]
+    path = write_force_estimate(tmp_path / "b.force.mcap", times, force, frame, {}, band_n=band, beyond_n=beyond)
+    np.testing.assert_allclose(read_force_estimate(path)[1], force)
+    t, b, o = read_force_band(path)
+    np.testing.assert_array_equal(t, times)
+    np.testing.assert_allclose(b, band)
+    np.testing.assert_allclose(o, beyond)
+    with Recording.open(path) as rec:
+        assert rec.topics[layout.FORCE_BAND].msgtype == "geometry_msgs/msg/WrenchStamped"
 
 
 @pytest.mark.slow

@@ -1,6 +1,8 @@
 """The Foxglove layout of our topics (docs/foxglove_layout.json): the left image with the tissue mask
 laid over it and the tracked points projected, the tissue cloud and tracked points in 3D in the object
-frame, and Fx, Fy, Fz of `/force/estimate` over time. The same layout serves `vfdata live` and the
+frame, Fx, Fy, Fz of `/force/estimate` over time, and below them how sure each is: the half-width of
+its calibrated band (`/force/estimate/band`) and how far it lies beyond the training range
+(`/force/estimate/beyond`), N. The same layout serves `vfdata live` and the
 files (a recording opened with its derived and force files), since both have the same topics.
 
     python -m vfdata.foxglove_layout > docs/foxglove_layout.json      # Foxglove: Layouts -> Import
@@ -45,10 +47,18 @@ def layout_json(rgbd: bool = False) -> str:
         paths=[fl.PlotSeries(value=f"{layout.FORCE_ESTIMATE}.wrench.force.{axis}", label=f"F{axis}",
                              timestamp_method="headerStamp", enabled=True) for axis in "xyz"],
         show_legend=True))
+    sure = fl.PlotPanel(title="how sure: 90% band half-width (solid) and beyond training (dashed), N",
+                        config=fl.PlotConfig(paths=[
+                            *(fl.PlotSeries(value=f"{layout.FORCE_BAND}.wrench.force.{axis}", label=f"band F{axis}",
+                                            timestamp_method="headerStamp", enabled=True) for axis in "xyz"),
+                            *(fl.PlotSeries(value=f"{layout.FORCE_BEYOND}.wrench.force.{axis}",
+                                            label=f"beyond F{axis}", timestamp_method="headerStamp", enabled=True,
+                                            line_style="dashed") for axis in "xyz")],
+                            show_legend=True))
     content = fl.SplitContainer(direction="row", items=[
         fl.SplitItem(proportion=1.2, content=image),
         fl.SplitItem(proportion=1.0, content=fl.SplitContainer(direction="column", items=[
-            fl.SplitItem(content=scene), fl.SplitItem(content=force)]))])
+            fl.SplitItem(content=scene), fl.SplitItem(content=force), fl.SplitItem(proportion=0.6, content=sure)]))])
     return json.dumps(json.loads(fl.Layout(content=content).to_json()), indent=2) + "\n"
 
 

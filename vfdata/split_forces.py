@@ -81,6 +81,22 @@ def beyond_training(force_n: np.ndarray, train_force_n: np.ndarray, margin: floa
     return below | above
 
 
+def training_range(force_n: np.ndarray, mirror: bool = False, rotate: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) (3,) N: the range of the training forces (M, 3) per component as training saw them:
+    with the mirror across XZ Fy is seen with both signs, with turns about Z Fx and Fy take every
+    direction up to the largest horizontal force."""
+    force = np.asarray(force_n, dtype=np.float64).reshape(-1, 3)
+    force = force[np.isfinite(force).all(axis=1)]
+    low, high = force.min(axis=0), force.max(axis=0)
+    if rotate:
+        reach = float(np.hypot(force[:, 0], force[:, 1]).max())
+        low[:2], high[:2] = -reach, reach
+    elif mirror:
+        reach = float(np.abs(force[:, 1]).max())
+        low[1], high[1] = -reach, reach
+    return low, high
+
+
 def summarise(forces: dict[str, np.ndarray]) -> dict[str, dict]:
     """Per split: frames, each component's min and max (N), how the components correlate, and (for
     every split but train) the share of frames with a component beyond training's range (by more than

@@ -48,6 +48,8 @@ class ForceEstimate:
     stamp_ns: int  # the frame the force belongs to (one frame before the latest push)
     force_n: np.ndarray  # (3,) object frame
     latency_s: float  # wall time of the push that produced it (all stages + model)
+    band_n: np.ndarray  # (3,) N, the half-width of each component's calibrated band (NaN: no calibration)
+    beyond_n: np.ndarray  # (3,) N, how far each component lies beyond the training range (0 inside)
     # Why the stream is doubtful so far (keys of vfdata.confidence.REASONS; empty: not doubtful).
     doubtful: tuple[str, ...] = ()
 
@@ -65,10 +67,10 @@ def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
 class StreamingForceModel:
     """The model half of live estimation: object-frame tracks in, one frame at a time, forces out.
 
-    `push(stamp_ns, points_object_mm (N, 3), visible (N,))` -> (stamp, force (3,) N) of the previous
-    frame, or None on the first frame; `flush()` gives the last frame's. Each frame's tokens follow the
-    recipe of training (`vfdata.clips.tokens.track_tokens`), and its force is the regressor's
-    (`ForceRegressor.encode_frames` / `decode_frames`, symmetry views included) on the last `window`
+    `push(stamp_ns, points_object_mm (N, 3), visible (N,))` -> (stamp, force (3,) N, band half-width (3,)
+    N) of the previous frame, or None on the first frame; `flush()` gives the last frame's. Each frame's
+    tokens follow the recipe of training (`vfdata.clips.tokens.track_tokens`), and its force and band are
+    the regressor's (`ForceRegressor.encode_frames` / `decode_frames`, symmetry views included) on the last `window`
     frames (None: the clip length it was trained on; 0: the state carried over the whole stream)."""
 
     def __init__(self, regressor: ForceRegressor, spec: ClipSpec, rotation: np.ndarray, origin_mm: np.ndarray,
@@ -82,7 +84,8 @@ class StreamingForceModel:
         self.first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame: mirror side, subset
         self.reference: np.ndarray | None = None  # each point's first visible position (displacements)
 
-    def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray) -> tuple[int, np.ndarray] | None:
+    def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray
+             ) -> tuple[int, np.ndarray, np.ndarray] | None:
         points, visible = np.asarray(points_object_mm, dtype=np.float64), np.asarray(visible, dtype=bool)
         self.recent.append((int(stamp_ns), points, visible))
         self.stamps.append(int(stamp_ns))
@@ -97,7 +100,7 @@ class StreamingForceModel:
         # a central difference (one-sided at the start), as over a whole recording.
         return self._estimate(len(self.recent) - 2)
 
-    def flush(self) -> tuple[int, np.ndarray] | None:
+    def flush(self) -> tuple[int, np.ndarray, np.ndarray] | None:
         """The last frame's estimate (one-sided velocity), at the end of a stream; then resets."""
         result = None
         if len(self.recent) >= 2:
@@ -111,7 +114,7 @@ class StreamingForceModel:
         return result
 
     @torch.no_grad()
-    def _estimate(self, target: int) -> tuple[int, np.ndarray]:
+    def _estimate(self, target: int) -> tuple[int, np.ndarray, np.ndarray]:
         recent = list(self.recent)
         # Velocities as over a whole recording: one-sided across a dropped frame (an interval over
         # GAP_FACTOR periods: a Kinect's, 70 ms of 30), at the rate of the source's usual period.
@@ -125,11 +128,12 @@ class StreamingForceModel:
         z = self.regressor.encode_frames(torch.from_numpy(tokens[target])[None, None].to(device),
                                          torch.from_numpy(valid[target])[None, None].to(device))  # (V, 1, D)
         if self.window == 0:
-            force, self.state = self.regressor.decode_frames(z, self.state)
+            estimate, self.state = self.regressor.decode_frames(z, self.state)
         else:
             self.embeddings.append(z)
-            force, _ = self.regressor.decode_frames(torch.cat(list(self.embeddings), dim=1))
-        return recent[target][0], mirror_y(force[0, -1].cpu().numpy().astype(np.float64), side)
+            estimate, _ = self.regressor.decode_frames(torch.cat(list(self.embeddings), dim=1))
+        force, band = (field[0, -1].cpu().numpy().astype(np.float64) for field in estimate[:2])
+        return recent[target][0], mirror_y(force, side), band
 
 
 class StreamingForceEstimator:
@@ -167,7 +171,8 @@ class StreamingForceEstimator:
         """The object frame, fixed on the first frame of the stream."""
         return self.engine.frame
 
-    def _track(self, images: ImageStages, left: np.ndarray, stamp_ns: int) -> tuple[int, np.ndarray] | None:
+    def _track(self, images: ImageStages, left: np.ndarray, stamp_ns: int
+               ) -> tuple[int, np.ndarray, np.ndarray] | None:
         result = self.engine.track(self.engine.frames, stamp_ns, left, images)
         if self.engine.offline_tracker:
             raise VisionForceError(f"tracker '{self.options.tracker}' is offline (whole clip): not for streaming")
@@ -202,9 +207,11 @@ class StreamingForceEstimator:
             self._pending = (future.result(), left, stamp_ns)
         return None if result is None else self._estimate(result, t0)
 
-    def _estimate(self, result: tuple[int, np.ndarray], t0: float) -> ForceEstimate:
+    def _estimate(self, result: tuple[int, np.ndarray, np.ndarray], t0: float) -> ForceEstimate:
+        stamp, force, band = result
         reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
-        return ForceEstimate(result[0], result[1], time.perf_counter() - t0, reasons)
+        return ForceEstimate(stamp, force, time.perf_counter() - t0, band, self.regressor.beyond_range(force),
+                             reasons)
 
     @property
     def confidence(self) -> Confidence | None:

@@ -5,7 +5,9 @@ Per tracked frame it serves the left image (`/stereo/left/image/compressed`, JPE
 `/stereo/left/camera_info`; an RGB-D source: `/camera/depth/image`, 16UC1 mm, and its camera info, in
 the depth camera's frame), `/tissue/mask`, `/tissue/points` and `/tracking/points` (object frame, m),
 the object frame on `/tf`, and the force of each frame on `/force/estimate` as soon as it is known
-(one frame later: its velocity is a central difference; two with `pipelined`). The force goes first,
+(one frame later: its velocity is a central difference; two with `pipelined`), with its band's
+half-width on `/force/estimate/band` and its distance beyond the training range on
+`/force/estimate/beyond` (N; `vfmodels.band`). The force goes first,
 the pictures after it, so drawing them never delays a force.
 
 Latency is measured from the arrival of the frame the estimate waited for (the one after the
@@ -26,8 +28,15 @@ from vfdata.engine import FrameResult
 from vfdata.foxglove_server import FoxgloveServer
 from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import layout
-from vfdata.recording.derived import DERIVED_VERSION, cloud_message, depth_message, mask_message, object_tf
-from vfdata.recording.messages import CompressedImage, WrenchStamped
+from vfdata.recording.derived import (
+    DERIVED_VERSION,
+    cloud_message,
+    depth_message,
+    mask_message,
+    object_tf,
+    wrench_of,
+)
+from vfdata.recording.messages import CompressedImage
 from vfdata.sources import LiveFrame, rectified_camera_info
 from vfmodels.live import ForceEstimate, StreamingForceEstimator
 
@@ -44,6 +53,8 @@ class LiveStats:
     wall_s: float = 0.0  # first frame's arrival to the last estimate sent
     latency_ms: list[float] = field(default_factory=list)  # per estimate with a next frame (see the module doc)
     forces: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (stamp_ns, force N) as sent
+    bands: list[np.ndarray] = field(default_factory=list)  # each sent force's band half-width (3,) N
+    beyond: int = 0  # estimates with a component beyond the training range
 
     @property
     def rate_fps(self) -> float:
@@ -51,7 +62,7 @@ class LiveStats:
 
     def summary(self) -> dict[str, float]:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.full(1, np.nan)
-        return {"frames": self.frames, "estimates": self.estimates, "dropped": self.dropped,
+        return {"frames": self.frames, "estimates": self.estimates, "dropped": self.dropped, "beyond": self.beyond,
                 "rate_fps": round(self.rate_fps, 2), "latency_median_ms": round(float(np.median(lat)), 1),
                 "latency_p95_ms": round(float(np.percentile(lat, 95)), 1)}
 
@@ -101,17 +112,20 @@ class LiveSession:
 
     def _send(self, estimate: ForceEstimate | None) -> None:
         if estimate is not None:
-            force = np.asarray(estimate.force_n, dtype=np.float64)
-            self.server.publish(layout.FORCE_ESTIMATE, WrenchStamped(
-                int(estimate.stamp_ns), layout.OBJECT_FRAME, tuple(float(f) for f in force), (0.0, 0.0, 0.0)))
+            force, stamp = np.asarray(estimate.force_n, dtype=np.float64), int(estimate.stamp_ns)
+            self.server.publish(layout.FORCE_ESTIMATE, wrench_of(stamp, force))
             sent = time.perf_counter()
+            self.server.publish(layout.FORCE_BAND, wrench_of(stamp, estimate.band_n))
+            self.server.publish(layout.FORCE_BEYOND, wrench_of(stamp, estimate.beyond_n))
             arrival = self._arrivals.pop(int(estimate.stamp_ns), None)
             if arrival is not None:
                 self.stats.latency_ms.append(1000.0 * (sent - arrival))
             self.stats.estimates += 1
-            self.stats.forces.append((int(estimate.stamp_ns), force))
+            self.stats.forces.append((stamp, force))
+            self.stats.bands.append(np.asarray(estimate.band_n, dtype=np.float64))
+            self.stats.beyond += int(np.any(estimate.beyond_n != 0))
             if estimate.doubtful and self.doubtful_since_ns is None:
-                self.doubtful_since_ns = int(estimate.stamp_ns)
+                self.doubtful_since_ns = stamp
                 print(f"warning: live: doubtful from frame stamp {estimate.stamp_ns}: "
                       f"{self.estimator.confidence.describe()}", file=sys.stderr, flush=True)
         while self._tracked:
@@ -142,8 +156,10 @@ class LiveSession:
     def metadata(self) -> dict[str, str]:
         """The `visionforce.derived` record of a recorded session (readable as a force file)."""
         frame = self.object_frame
+        calibration = self.estimator.regressor.band_calibration
         meta = {"stage": "live", "derived_version": str(DERIVED_VERSION), "torque_estimated": "false",
-                "live_stats": json.dumps(self.stats.summary())}
+                "live_stats": json.dumps(self.stats.summary()),
+                "band": json.dumps(None if calibration is None else calibration.to_dict())}
         if frame is not None:
             meta["object_frame"] = json.dumps(frame.to_dict())
             meta["up_known"] = str(self.estimator.up is not None).lower()

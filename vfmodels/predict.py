@@ -3,10 +3,14 @@
 `predict_recording` (`vfdata predict`) runs the per-frame engine over a recording (depth, tissue
 mask, cloud, object frame, tracks: `vfdata.engine`), keeps the derived recording beside its outputs,
 turns the tracks into forces with the trained model, and writes
-- `<id>.force.mcap`: `/force/estimate` (WrenchStamped in the object frame `tissue_object`, N) and the
-  object frame on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
-- `<id>.force.png`: Fx, Fy, Fz against the frame index, with the measured force when there is one;
-- `<id>.overlay.mp4`: the paper's Fig. 8, the force drawn on the left image at the tissue origin.
+- `<id>.force.mcap`: `/force/estimate` (WrenchStamped in the object frame `tissue_object`, N), beside it
+  `/force/estimate/band` (the half-width of each component's calibrated 90% band, N: `vfmodels.band`)
+  and `/force/estimate/beyond` (how far each component lies beyond the training forces' range, N), and
+  the object frame on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
+- `<id>.force.png`: Fx, Fy, Fz against the frame index, the band shaded and frames beyond training
+  marked, with the measured force when there is one;
+- `<id>.overlay.mp4`: the paper's Fig. 8, the force drawn on the left image at the tissue origin, with
+  the band in its label.
 
 Without an ECM pose (gravity unknown) the object frame's X axis is arbitrary: the image's up made
 perpendicular to the tissue axis Z (`vfdata.recon.object_frame`), so Fx and Fy are meaningful only up
@@ -42,9 +46,10 @@ from vfdata.processing import ProcessOptions, frame_image, process_recording
 from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
+from vfmodels.band import band_metrics, describe
 from vfmodels.metrics import force_metrics
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
-from vfmodels.regressor import ForceRegressor, read_checkpoint
+from vfmodels.regressor import Estimate, ForceRegressor, read_checkpoint
 from vfmodels.reports.figures import plot_force_series
 
 # ---- the model -----------------------------------------------------------------------------------
@@ -108,32 +113,51 @@ def frame_embeddings(regressor: ForceRegressor, tokens: np.ndarray, valid: np.nd
 
 
 @torch.no_grad()
-def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int) -> np.ndarray:
-    """Forces (T, 3) in N from per-frame embeddings (V, T, D): frame t from the temporal model run over
-    frames max(0, t - window + 1)..t from a zero state (window 0: one run over everything)."""
+def windowed_estimate(regressor: ForceRegressor, z: torch.Tensor, window: int) -> Estimate:
+    """The `Estimate` (forces, band, spread: each (T, 3) N, NumPy) from per-frame embeddings (V, T, D):
+    frame t from the temporal model run over frames max(0, t - window + 1)..t from a zero state (window
+    0: one run over everything)."""
     t = z.shape[1]
     if window == 0 or t <= window:
-        return regressor.decode_frames(z)[0][0].cpu().numpy()
+        return Estimate(*(field[0].cpu().numpy() for field in regressor.decode_frames(z)[0]))
     index = np.arange(t)[:, None] + np.arange(-window + 1, 1)[None, :]  # all windows at once: (T, window)
     windows = z[:, torch.from_numpy(np.clip(index, 0, None)).to(z.device)]  # (V, T, window, D)
-    out = regressor.decode_frames(windows.flatten(0, 1))[0][:, -1]
+    out = regressor.decode_frames(windows.flatten(0, 1))[0]
     # Frames 0..window-2 have shorter histories: their windows start at frame 0 and repeat it; run
     # them exactly instead, from the one full run over the first window.
-    out[: window - 1] = regressor.decode_frames(z[:, :window])[0][0, : window - 1]
-    return out.cpu().numpy()
+    first = regressor.decode_frames(z[:, :window])[0]
+    fields = []
+    for every, head in zip(out, first, strict=True):
+        field = every[:, -1].clone()
+        field[: window - 1] = head[0, : window - 1]
+        fields.append(field.cpu().numpy())
+    return Estimate(*fields)
+
+
+def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int) -> np.ndarray:
+    """Forces (T, 3) in N of `windowed_estimate`."""
+    return windowed_estimate(regressor, z, window).force_n
+
+
+def estimate_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = None
+                         ) -> tuple[Estimate, float]:
+    """A whole recording's tracks -> (the `Estimate`: forces, band and spread, each (T, 3) N in the object
+    frame, NumPy; the side it was read from: -1 when `spec.canonical_side` mirrored it, and the forces are
+    turned back). `window`: frames of history (None: the clip length the model was trained on,
+    `spec.clip_frames`; 0: the whole recording)."""
+    tokens, valid, side = track_tokens(spec, tracks.points_object_mm, tracks.visible, tracks.times_ns,
+                                       (tracks.frame.rotation, tracks.frame.origin))
+    if not len(tokens):
+        return Estimate(*(np.zeros((0, 3)) for _ in Estimate._fields)), side
+    estimate = windowed_estimate(regressor, frame_embeddings(regressor, tokens, valid), history(spec, window))
+    return estimate._replace(force_n=mirror_y(estimate.force_n, side)), side
 
 
 def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = None
                        ) -> tuple[np.ndarray, float]:
-    """A whole recording's tracks -> (forces (T, 3) N in the object frame, the side it was read from:
-    -1 when `spec.canonical_side` mirrored it). `window`: frames of history (None: the clip length the
-    model was trained on, `spec.clip_frames`; 0: the whole recording)."""
-    tokens, valid, side = track_tokens(spec, tracks.points_object_mm, tracks.visible, tracks.times_ns,
-                                       (tracks.frame.rotation, tracks.frame.origin))
-    if not len(tokens):
-        return np.zeros((0, 3)), side
-    force = windowed_forces(regressor, frame_embeddings(regressor, tokens, valid), history(spec, window))
-    return mirror_y(force, side), side
+    """(forces (T, 3) N, side) of `estimate_from_tracks`."""
+    estimate, side = estimate_from_tracks(regressor, spec, tracks, window)
+    return estimate.force_n, side
 
 
 def history(spec: ClipSpec, window: int | None) -> int:
@@ -159,6 +183,9 @@ class PredictResult:
     up_known: bool
     x_axis: str  # what the object frame's X is (vfdata.recon.object_frame.x_axis_meaning)
     metrics: dict[str, float] | None = None  # against the recording's force sensor, as Table I (none without)
+    band: str = ""  # the model's band calibration in words (vfmodels.band.describe)
+    band_metrics: dict[str, float] | None = None  # coverage and half-width against the sensor (none without)
+    frames_beyond: int = 0  # frames with a component beyond the training range
     confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)
 
 
@@ -204,34 +231,49 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
 
     started = time.perf_counter()
     window = history(spec, window)
-    force, side = forces_from_tracks(regressor, spec, tracks, window)
+    estimate, side = estimate_from_tracks(regressor, spec, tracks, window)
+    force = estimate.force_n
+    beyond = regressor.beyond_range(force)
     force_fps = len(force) / max(time.perf_counter() - started, 1e-9)
     x_axis = x_axis_meaning(tracks.metadata.object_frame_kind, tracks.metadata.up_known)
+    calibration = regressor.band_calibration
+    frames_beyond = int((beyond != 0).any(axis=1).sum())
     confidence = tracks.metadata.confidence
     meta = {**(confidence.metadata() if confidence is not None else {}),
             "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
-            "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}"}
+            "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}",
+            "band": json.dumps(None if calibration is None else calibration.to_dict()),
+            "frames_beyond_training": str(frames_beyond)}
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
-                                      camera_frame_id=tracks.metadata.camera_frame_id)
+                                      camera_frame_id=tracks.metadata.camera_frame_id, band_n=estimate.band_n,
+                                      beyond_n=beyond)
     with Recording.open(src) as rec:
         measured = object_force_at(rec, tracks.times_ns) if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")
         title = f"{stem}: estimated force (object frame; X {x_axis.split(':')[0]})"
         if confidence is not None and confidence.doubtful:
             title = f"DOUBTFUL ({', '.join(confidence.reasons)}): {title}"
-        plot = plot_force_series(force, paths["plot"], measured_n=measured, title=title)
-        video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress) if video else None
+        plot = plot_force_series(force, paths["plot"], measured_n=measured, title=title,
+                                 band_n=estimate.band_n, beyond_n=beyond,
+                                 coverage=None if calibration is None else calibration.coverage)
+        video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress,
+                                         band_n=estimate.band_n, beyond_n=beyond) if video else None
     known = np.zeros(0, bool) if measured is None else np.isfinite(measured).all(axis=1)
     metrics = force_metrics(force[known], measured[known]) if known.sum() > 1 else None
+    coverage = band_metrics(force[known], measured[known], estimate.band_n[known]) \
+        if known.sum() > 1 and calibration is not None else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
                          tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics,
-                         confidence)
+                         describe(calibration), coverage, frames_beyond, confidence)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,
-                        measured_object_n: np.ndarray | None, progress: bool = True) -> Path:
-    """The overlay video of a recording: the estimated (and measured) force at the object origin."""
+                        measured_object_n: np.ndarray | None, progress: bool = True, band_n: np.ndarray | None = None,
+                        beyond_n: np.ndarray | None = None) -> Path:
+    """The overlay video of a recording: the estimated (and measured) force at the object origin; its
+    label gives |F| and, with `band_n` (T, 3) N, the band's half-width of each component, and says when
+    a component lies beyond the training range (`beyond_n` (T, 3) N nonzero)."""
     frame: ObjectFrame = tracks.frame
     force_cam = force_to_camera(force_object_n, frame.rotation)
     measured_cam = None if measured_object_n is None else force_to_camera(measured_object_n, frame.rotation)
@@ -244,10 +286,15 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
         for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
             image = frame_image(rec, rec.frame_index_at(int(times[i])))
             label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"
+            if band_n is not None and np.isfinite(band_n[i]).all():
+                label += "  band +-" + "/".join(f"{b:.1f}" for b in band_n[i]) + " N"
+            if beyond_n is not None and (beyond_n[i] != 0).any():
+                label += "  BEYOND TRAINING"
             writer.write(draw_force_overlay(image, origin_uv, force_cam[i], scale, label,
                                             None if measured_cam is None else measured_cam[i]))
     return writer.path
 
 
-__all__ = ["PredictResult", "forces_from_tracks", "frame_embeddings", "history", "load_force_model",
-           "predict_recording", "prediction_tracker", "trained_tracker", "windowed_forces", "write_overlay_video"]
+__all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "history",
+           "load_force_model", "predict_recording", "prediction_tracker", "trained_tracker", "windowed_estimate",
+           "windowed_forces", "write_overlay_video"]

@@ -23,13 +23,16 @@ from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
 
-FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true")
+FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread")
+VECTORS = ("pred", "true", "band", "spread")  # (M, 3) N
 
 
 class PredictionCollector(BasePredictionWriter):
     """Per-frame predictions of a `trainer.predict` run, available as `frames` after it: recording
     (M,) str, orientation_deg (M,), frame_time_ns (M,) int64, pred (M, 3) N, true (M, 3) N (NaN where
-    the batches had no measured force), sorted by recording and time."""
+    the batches had no measured force), band (M, 3) N (the half-width of each component's band, NaN
+    without a calibration) and spread (M, 3) N (its signal: `vfmodels.regressor.Estimate`), sorted by
+    recording and time."""
 
     def __init__(self) -> None:
         super().__init__(write_interval="batch")
@@ -46,6 +49,8 @@ class PredictionCollector(BasePredictionWriter):
         pred = prediction["force_n"].numpy()
         b, t = pred.shape[:2]
         true = prediction["true_n"].numpy() if "true_n" in prediction else np.full_like(pred, np.nan)
+        band = prediction["band_n"].numpy() if "band_n" in prediction else np.full_like(pred, np.nan)
+        spread = prediction["spread_n"].numpy() if "spread_n" in prediction else np.full_like(pred, np.nan)
         self._parts.append({
             "recording": np.repeat(np.asarray(prediction["recording"], dtype=object), t).astype(str),
             "orientation_deg": np.repeat(prediction["orientation_deg"].numpy().astype(np.float64), t),
@@ -53,6 +58,8 @@ class PredictionCollector(BasePredictionWriter):
             "position": np.tile(np.arange(t), b),
             "pred": pred.reshape(-1, 3).astype(np.float64),
             "true": true.reshape(-1, 3).astype(np.float64),
+            "band": band.reshape(-1, 3).astype(np.float64),
+            "spread": spread.reshape(-1, 3).astype(np.float64),
         })
 
     def on_predict_end(self, trainer, pl_module) -> None:
@@ -62,7 +69,7 @@ class PredictionCollector(BasePredictionWriter):
             torch.distributed.all_gather_object(gathered, parts)
             parts = [p for rank in gathered for p in rank]
         if not parts:
-            self.frames = {k: np.zeros((0, 3) if k in ("pred", "true") else 0) for k in FIELDS if k != "position"}
+            self.frames = {k: np.zeros((0, 3) if k in VECTORS else 0) for k in FIELDS if k != "position"}
         else:
             frames = {k: np.concatenate([p[k] for p in parts]) for k in FIELDS}
             keep = latest_clip_frames(frames["recording"], frames["frame_time_ns"], frames["position"])
@@ -118,6 +125,7 @@ class ForceEstimateWriter(PredictionCollector):
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
                                  {"stage": "train.py predict", "model": model, "recording": rid,
                                   "source": str(entry.processed if entry else "")}, overwrite=self.overwrite,
-                                 camera_frame_id=camera)
+                                 camera_frame_id=camera, band_n=frames["band"][rows],
+                                 beyond_n=pl_module.beyond_range(frames["pred"][rows]))
             self.written.append(path)
             rank_zero_info(f"wrote {path} ({int(rows.sum())} frames)")

@@ -19,7 +19,8 @@ which `SetTransformerLSTM` implements for reference:
   (None: the zero state a training clip starts from) to the state after the last frame;
 - `forward(x, valid) == decode_frames(encode_frames(x, valid))[0]`.
 Nobody calls them directly: `ForceRegressor.encode_frames` / `decode_frames` add the normalisation and
-the symmetry views, so that every caller gets the forces the test scores. A model without them (the
+the symmetry views, so that every caller gets the forces the test scores, and beside them the band of
+each force (`Estimate`, `vfmodels.band`), calibrated on the validation split. A model without them (the
 image baselines: a 3D convolution looks both ways in time) trains and tests, and prediction refuses it
 in one line.
 """
@@ -27,7 +28,7 @@ in one line.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import lightning.pytorch as L
 import numpy as np
@@ -39,11 +40,23 @@ from torch import nn
 from vfdata.clips.tokens import latest_clip_frames, turn_about_z
 from vfdata.errors import InputError
 from vfdata.weights import load_weights
+from vfmodels import band
 from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
 from vfmodels.registry import build_model, class_path
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
 COMPILED_PREFIX = "_compiled."
+
+
+class Estimate(NamedTuple):
+    """What the model says of each frame, every tensor (..., 3) in N in the object frame: the force (the
+    mean over the symmetry views), the half-width of its band (`vfmodels.band`: force +- band_n covers the
+    calibration's stated share of frames; NaN without a calibration) and the views' spread (the band's
+    signal: their population std, 0 with one view)."""
+
+    force_n: torch.Tensor
+    band_n: torch.Tensor
+    spread_n: torch.Tensor
 
 
 class ForceRegressor(L.LightningModule):
@@ -55,6 +68,11 @@ class ForceRegressor(L.LightningModule):
     checkpoint and restored with it. Without statistics the inputs and forces pass unchanged.
 
     `compile_model=True` runs the model through `torch.compile` (state-dict keys are unchanged).
+
+    The band (`vfmodels.band`): `band_calibration`, set at the end of every validation epoch from that
+    epoch's validation frames (split-conformal scaling of the symmetry views' spread), with the training
+    forces' range from `trainer.datamodule.force_range`; saved in every checkpoint (`force_model.band`)
+    and restored with it. None (no validation, too few frames): every band is NaN.
 
     `symmetry_turns=n` (n >= 1; 0 = off) averages every prediction outside training over the tube's
     symmetries: n turns about the object's Z axis (360/n degrees apart), each with its mirror across
@@ -89,6 +107,8 @@ class ForceRegressor(L.LightningModule):
         self._compiled = None
         self._outputs: dict[str, list] = {}
         self.test_results: dict[str, Any] | None = None
+        self.band_calibration: band.BandCalibration | None = None
+        self._train_range: tuple[np.ndarray, np.ndarray] | None = None  # training forces' (low, high) N
 
     # ---- normalisation -------------------------------------------------------------------------
 
@@ -121,6 +141,9 @@ class ForceRegressor(L.LightningModule):
         # after setup brings its own, and the datamodule's only fill in for an untrained model.
         if stats is not None and (stage == "fit" or self.force_mean.numel() == 0):
             self.set_normalisation(**stats)
+        force_range = getattr(getattr(self.trainer, "datamodule", None), "force_range", None)
+        if stage == "fit" and force_range is not None:
+            self._train_range = tuple(np.asarray(v, dtype=np.float64) for v in force_range)
         if self.hparams.compile_model and self._compiled is None:
             # Set past nn.Module's bookkeeping: as a submodule the wrapper would put a second copy of
             # every weight in the state dict ("_compiled._orig_mod.*") and break strict loading.
@@ -143,12 +166,16 @@ class ForceRegressor(L.LightningModule):
 
     def forward(self, batch: dict[str, Any]) -> torch.Tensor:
         """Normalised force predictions (B, T, 3); outside training averaged over the symmetry views."""
-        model = self._compiled if self._compiled is not None else self.model
-        x, valid = batch[self.model.input_key], batch.get("valid")
         if self.training or not self.symmetry_turns:
-            return model(self.normalise_input(x), valid)
-        x, valid = self._views_of(x, valid)
-        return self.normalise_force(self._mean_of_views(self.denormalise_force(model(self.normalise_input(x), valid))))
+            model = self._compiled if self._compiled is not None else self.model
+            return model(self.normalise_input(batch[self.model.input_key]), batch.get("valid"))
+        return self.normalise_force(self.estimate(batch).force_n)
+
+    def estimate(self, batch: dict[str, Any]) -> Estimate:
+        """The forces (B, T, 3) in N of a batch of clips, averaged over the symmetry views, with their band."""
+        model = self._compiled if self._compiled is not None else self.model
+        x, valid = self._views_of(batch[self.model.input_key], batch.get("valid"))
+        return self._estimate_of_views(self.denormalise_force(model(self.normalise_input(x), valid)))
 
     def predict_forces(self, batch: dict[str, Any]) -> torch.Tensor:
         """Forces (B, T, 3) in N."""
@@ -167,12 +194,13 @@ class ForceRegressor(L.LightningModule):
         x, valid = self._views_of(x, valid)
         return self.model.encode_frames(self.normalise_input(x), valid)
 
-    def decode_frames(self, z: torch.Tensor, state: Any = None) -> tuple[torch.Tensor, Any]:
-        """Embeddings (V * B, T, D) of `encode_frames` -> (forces (B, T, 3) in N, the mean of the views
-        turned back; the temporal state after the last frame, to carry on from). `state` None: the zero
-        state a clip starts from, so one call on a clip's embeddings gives what the test scores."""
+    def decode_frames(self, z: torch.Tensor, state: Any = None) -> tuple[Estimate, Any]:
+        """Embeddings (V * B, T, D) of `encode_frames` -> (the `Estimate` (B, T, 3): forces in N, the mean
+        of the views turned back, and their band; the temporal state after the last frame, to carry on
+        from). `state` None: the zero state a clip starts from, so one call on a clip's embeddings gives
+        what the test scores."""
         out, state = self.model.decode_frames(z, state)
-        return self._mean_of_views(self.denormalise_force(out)), state
+        return self._estimate_of_views(self.denormalise_force(out)), state
 
     def _views_of(self, x: torch.Tensor, valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Inputs (B, ...) -> every view's (V * B, ...), in one batch: one network pass for all views."""
@@ -183,12 +211,35 @@ class ForceRegressor(L.LightningModule):
         both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
         return turned.flatten(0, 1), both
 
-    def _mean_of_views(self, force_n: torch.Tensor) -> torch.Tensor:
-        """Forces (V * B, ..., 3) in N of every view -> (B, ..., 3): each turned back, then averaged."""
-        if not self.symmetry_turns:
-            return force_n
-        views = torch.stack(symmetry_views(self.symmetry_turns, device=force_n.device))
-        return torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views).mean(0)
+    def _estimate_of_views(self, force_n: torch.Tensor) -> Estimate:
+        """Forces (V * B, ..., 3) in N of every view -> the `Estimate` (B, ..., 3): each view turned back,
+        their mean, their spread and its band."""
+        if self.symmetry_turns:
+            views = torch.stack(symmetry_views(self.symmetry_turns, device=force_n.device))
+            turned = torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views)
+            force, spread = turned.mean(0), turned.std(0, correction=0)
+        else:
+            force, spread = force_n, torch.zeros_like(force_n)
+        return Estimate(force, self.band_of(spread, force), spread)
+
+    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
+        """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each
+        (`vfmodels.band.half_width`); NaN without a calibration."""
+        calibration = self.band_calibration
+        if calibration is None:
+            return torch.full_like(spread_n, float("nan"))
+        scale, weight, force_weight = (torch.tensor(v, dtype=spread_n.dtype, device=spread_n.device)
+                                       for v in (calibration.scale, calibration.weight, calibration.force_weight))
+        return band.half_width(spread_n, force_n.abs(), scale, weight, force_weight)
+
+    def beyond_range(self, force_n: np.ndarray) -> np.ndarray:
+        """How far (N, signed, 0 inside) each component of forces (..., 3) lies beyond the training forces'
+        range (`vfmodels.band.beyond_range`); zeros when the calibration does not know the range."""
+        calibration = self.band_calibration
+        force_n = np.asarray(force_n, dtype=np.float64)
+        if calibration is None or calibration.train_min_n is None:
+            return np.zeros_like(force_n)
+        return band.beyond_range(force_n, np.asarray(calibration.train_min_n), np.asarray(calibration.train_max_n))
 
     # ---- loss and steps ------------------------------------------------------------------------
 
@@ -210,12 +261,16 @@ class ForceRegressor(L.LightningModule):
         self._evaluate(batch, "test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
-        """{"force_n": (B, T, 3) N, "recording": [...], "frame_time_ns": (B, T), "orientation_deg":
-        (B,), and "true_n" (B, T, 3) N when the batch has the measured force} (CPU tensors). A clip of
-        a mirrored recording (batch "side" -1) has its Fy turned back to the sensor's."""
+        """{"force_n": (B, T, 3) N, "band_n" and "spread_n" (B, T, 3) N (`Estimate`), "recording": [...],
+        "frame_time_ns": (B, T), "orientation_deg": (B,), and "true_n" (B, T, 3) N when the batch has the
+        measured force} (CPU tensors). A clip of a mirrored recording (batch "side" -1) has its Fy turned
+        back to the sensor's."""
         b = len(batch[self.model.input_key])
+        estimate = self.estimate(batch)
         out = {
-            "force_n": self.unmirror(self.predict_forces(batch), batch),
+            "force_n": self.unmirror(estimate.force_n, batch),
+            "band_n": estimate.band_n.detach().float().cpu(),
+            "spread_n": estimate.spread_n.detach().float().cpu(),
             "recording": list(batch.get("recording", [""] * b)),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
             "orientation_deg": torch.as_tensor(batch.get("orientation_deg", torch.zeros(b))).float().cpu(),
@@ -239,7 +294,8 @@ class ForceRegressor(L.LightningModule):
     # ---- metrics -------------------------------------------------------------------------------
 
     def _evaluate(self, batch: dict[str, Any], split: str) -> None:
-        pred = self(batch)
+        estimate = self.estimate(batch)
+        pred = self.normalise_force(estimate.force_n)
         force_n = batch["force"]
         b, t = force_n.shape[:2]
         self.log(f"{split}/loss", self._loss(pred, force_n), on_epoch=True, prog_bar=True, batch_size=b,
@@ -247,10 +303,12 @@ class ForceRegressor(L.LightningModule):
         out = self._outputs.setdefault(split, [])
         orientation = batch.get("orientation_deg", torch.zeros(b))
         # The metrics in the sensor's frame, as the experiment's tables.
-        pred_n, true_n = self.unmirror(self.denormalise_force(pred), batch), self.unmirror(force_n, batch)
+        pred_n, true_n = self.unmirror(estimate.force_n, batch), self.unmirror(force_n, batch)
         out.append(dict(
             pred_n=pred_n.numpy().reshape(-1, 3),
             true_n=true_n.numpy().reshape(-1, 3),
+            band_n=estimate.band_n.detach().float().cpu().numpy().reshape(-1, 3),
+            spread_n=estimate.spread_n.detach().float().cpu().numpy().reshape(-1, 3),
             orientation_deg=np.repeat(torch.as_tensor(orientation).cpu().numpy(), t),
             recording=np.repeat(np.asarray(batch.get("recording", [""] * b), dtype=object), t),
             frame_time_ns=(batch["frame_time_ns"].cpu().numpy().reshape(-1) if "frame_time_ns" in batch
@@ -279,6 +337,21 @@ class ForceRegressor(L.LightningModule):
             return
         metrics = force_metrics(frames["pred_n"], frames["true_n"])
         self.log_dict({f"val/{k}": v for k, v in metrics.items()}, sync_dist=False)
+        # The band of these weights, from their validation frames: the checkpoint saved after this
+        # validation holds both (with EMAWeightAveraging, validation ran on the averaged weights, which
+        # the checkpoint saves).
+        self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"])
+
+    def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray) -> None:
+        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.band.calibrate`), with the
+        training range when it is known (kept from the calibration it replaces otherwise)."""
+        calibration = band.calibrate(pred_n, true_n, spread_n)
+        train_range = self._train_range
+        if train_range is None and self.band_calibration is not None and self.band_calibration.train_min_n:
+            train_range = (self.band_calibration.train_min_n, self.band_calibration.train_max_n)
+        if calibration is not None and train_range is not None:
+            calibration = calibration.with_training_range(*train_range)
+        self.band_calibration = calibration
 
     def on_test_epoch_end(self) -> None:
         frames = self._collect("test")
@@ -289,10 +362,15 @@ class ForceRegressor(L.LightningModule):
         if len(result["groups"]) > 1:
             logged.update({f"test/mean/{k}": v for k, v in result["mean"].items()})
             logged.update({f"test/std/{k}": v for k, v in result["std"].items()})
+        result["band"] = band.grouped_band_metrics(frames["pred_n"], frames["true_n"], frames["band_n"],
+                                                   frames["orientation_deg"])
+        if self.band_calibration is not None:
+            logged.update({f"test/band/{k}": v for k, v in result["band"]["pooled"].items()})
         self.log_dict(logged, sync_dist=False)
         self.test_results = result
         rank_zero_info(f"test: {len(frames['true_n'])} frames, orientations (deg) "
-                       f"{sorted(result['groups'])}\n{format_table(result)}")
+                       f"{sorted(result['groups'])}\n{format_table(result)}\n"
+                       f"{band.format_band_table(result['band'], self.band_calibration)}")
 
     # ---- checkpoints ---------------------------------------------------------------------------
 
@@ -311,7 +389,12 @@ class ForceRegressor(L.LightningModule):
             "init_args": dict(getattr(self.model, "config", {})),
             "initialisation": getattr(self.model, "initialisation", "random"),
             "symmetry_turns": self.symmetry_turns,
+            "band": None if self.band_calibration is None else self.band_calibration.to_dict(),
         }
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # `train.py test/predict --ckpt_path` restore through Lightning, not `load`.
+        self.band_calibration = band_from_checkpoint(checkpoint, Path("checkpoint"))
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
@@ -337,7 +420,23 @@ class ForceRegressor(L.LightningModule):
         except (KeyError, RuntimeError) as exc:
             raise InputError(path, f"the checkpoint's weights do not fit its model ({str(exc).splitlines()[0]})") \
                 from None
+        regressor.band_calibration = band_from_checkpoint(checkpoint, path)
         return regressor.eval()
+
+
+def band_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> band.BandCalibration | None:
+    """The band calibration a checkpoint holds (`force_model.band`), None when it has none (no validation,
+    or a checkpoint from before bands); an InputError naming the file when it is damaged."""
+    spec = checkpoint.get("force_model")
+    values = spec.get("band") if isinstance(spec, dict) else None
+    if values is None:
+        return None
+    try:
+        if not isinstance(values, dict):
+            raise ValueError(f"band calibration {values!r} is not a mapping")
+        return band.BandCalibration.from_dict(values)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
 
 
 def symmetry_views(turns: int, device: torch.device | str = "cpu") -> list[torch.Tensor]:

@@ -17,6 +17,7 @@ from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
 from vfdata.recording.derived import read_tracker_name
+from vfdata.split_forces import training_range
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -49,7 +50,9 @@ class ForceDataModule(L.LightningDataModule):
             validation), as code that splits frames at random does. Neighbouring clips then land on
             both sides, so it flatters: for comparison with such results only (docs/results.md).
 
-    The training split's statistics are `normalisation` (for `ForceRegressor`), and the spec with
+    The training split's statistics are `normalisation` (for `ForceRegressor`), its forces' range per
+    component as training sees them (augmentation included) `force_range` ((low, high) N: the band's
+    "beyond training" mark, `vfmodels.band`), and the spec with
     the measured frame rate is saved with every checkpoint (`datamodule_hyper_parameters["spec"]`),
     so prediction makes the same tokens.
     """
@@ -72,6 +75,7 @@ class ForceDataModule(L.LightningDataModule):
         self.random_split = float(random_split)
         self.datasets: dict[str, ForceClipDataset] = {}
         self.normalisation: dict[str, torch.Tensor] | None = None
+        self.force_range: tuple[np.ndarray, np.ndarray] | None = None
         self._save_spec()
 
     @classmethod
@@ -137,6 +141,10 @@ class ForceDataModule(L.LightningDataModule):
             self.dataset("val")
             if self.normalisation is None:
                 self.normalisation = train.normalisation()
+            if self.force_range is None:
+                self.force_range = training_range(np.concatenate([d.force_n for d in train.recordings]),
+                                                  self.spec.mirror_augment or self.spec.canonical_side,
+                                                  self.spec.rotate_augment)
             if self.spec.fps is None:  # measured once, then saved with the checkpoint
                 self.spec = self.spec.with_fps(train.fps)
                 self._save_spec()

@@ -7,7 +7,9 @@ z float32 in metres in the object frame `tissue_object`: REP 103) and `/tracking
 `visible` uint8). Once: `/tf_static` (left camera -> object frame, metres) and the
 `visionforce.derived` metadata (provenance, the object frame, the stage rates). A force file holds
 `/force/estimate` (WrenchStamped in the object frame, N; torque is not estimated: zeros, with
-`torque_estimated: false` in its metadata) and the same `/tf_static`.
+`torque_estimated: false` in its metadata), beside it `/force/estimate/band` (the half-width of each
+component's calibrated band, N) and `/force/estimate/beyond` (how far each component lies beyond the
+training range, N) when the model gives them, and the same `/tf_static`.
 
 Arrays cross this module's edge in the project's units (mm, N, ns). Files written before REP 103/118
 units (`derived_version` 1 or absent: clouds in mm, depth in 0.1 mm) read the same.
@@ -223,20 +225,30 @@ class DerivedWriter:
 
 def write_force_estimate(path: str | Path, times_ns: np.ndarray, force_object_n: np.ndarray, frame: ObjectFrame,
                          metadata: dict[str, str], overwrite: bool = False,
-                         camera_frame_id: str = layout.LEFT_FRAME) -> Path:
-    """`/force/estimate` (WrenchStamped in `tissue_object`, N, torque zeros: not estimated) and the
-    object frame on /tf_static (child of `camera_frame_id`)."""
+                         camera_frame_id: str = layout.LEFT_FRAME, band_n: np.ndarray | None = None,
+                         beyond_n: np.ndarray | None = None) -> Path:
+    """`/force/estimate` (WrenchStamped in `tissue_object`, N, torque zeros: not estimated), with
+    `band_n` (T, 3) N the band's half-width on `/force/estimate/band` and `beyond_n` (T, 3) N the
+    distance beyond the training range on `/force/estimate/beyond` (each stamped like its estimate),
+    and the object frame on /tf_static (child of `camera_frame_id`)."""
     times_ns = np.asarray(times_ns, dtype=np.int64)
+    series = [(layout.FORCE_ESTIMATE, force_object_n), (layout.FORCE_BAND, band_n), (layout.FORCE_BEYOND, beyond_n)]
     with McapWriter(path, overwrite=overwrite) as writer:
         first = int(times_ns[0]) if len(times_ns) else 0
         writer.write(layout.TF_STATIC, object_tf(frame.rotation, frame.origin, first, camera_frame_id))
-        for stamp, force in zip(times_ns, np.asarray(force_object_n, dtype=np.float64), strict=True):
-            writer.write(layout.FORCE_ESTIMATE, WrenchStamped(int(stamp), layout.OBJECT_FRAME,
-                                                              tuple(float(f) for f in force), (0.0, 0.0, 0.0)))
+        for i, stamp in enumerate(times_ns):
+            for topic, values in series:
+                if values is not None:
+                    writer.write(topic, wrench_of(int(stamp), values[i]))
         writer.add_metadata(layout.DERIVED_METADATA, {
             **{k: str(v) for k, v in metadata.items()}, "object_frame": json.dumps(frame.to_dict()),
             "torque_estimated": "false", "derived_version": str(DERIVED_VERSION)})
     return Path(path)
+
+
+def wrench_of(stamp_ns: int, force_n) -> WrenchStamped:
+    """A force (3,) N in the object frame as the WrenchStamped of `/force/estimate` and the topics beside it."""
+    return WrenchStamped(int(stamp_ns), layout.OBJECT_FRAME, tuple(float(f) for f in force_n), (0.0, 0.0, 0.0))
 
 
 # ---- reading -------------------------------------------------------------------------------------
@@ -404,10 +416,28 @@ def read_tracks(path: str | Path) -> Tracks:
 
 
 def read_force_estimate(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(times_ns (T,), force (T, 3) N, object frame) of a `/force/estimate` MCAP."""
+    """(times_ns (T,), force (T, 3) N) of a `/force/estimate` MCAP."""
     with Recording.open(path) as rec:
         if not rec.has(layout.FORCE_ESTIMATE):
             raise InputError(Path(path), f"no {layout.FORCE_ESTIMATE}: not a force file of `vfdata predict`")
-        pairs = [(t, m.force) for t, m in rec.messages(layout.FORCE_ESTIMATE)]
+        return _series(rec, layout.FORCE_ESTIMATE)
+
+
+def read_force_band(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(times_ns (T,), band half-width (T, 3) N, beyond the training range (T, 3) N) of a force file, None
+    when it has no band (written before bands, or by a writer without one)."""
+    with Recording.open(path) as rec:
+        if not rec.has(layout.FORCE_BAND):
+            return None
+        times, half = _series(rec, layout.FORCE_BAND)
+        beyond = _series(rec, layout.FORCE_BEYOND)[1] if rec.has(layout.FORCE_BEYOND) else np.zeros_like(half)
+    if len(beyond) != len(half):
+        raise InputError(Path(path), f"{len(half)} {layout.FORCE_BAND} messages but {len(beyond)} "
+                                     f"{layout.FORCE_BEYOND}")
+    return times, half, beyond
+
+
+def _series(rec: Recording, topic: str) -> tuple[np.ndarray, np.ndarray]:
+    pairs = [(t, m.force) for t, m in rec.messages(topic)]
     return (np.array([p[0] for p in pairs], dtype=np.int64),
             np.array([p[1] for p in pairs], dtype=np.float64).reshape(-1, 3))

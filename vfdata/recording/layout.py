@@ -60,6 +60,11 @@ TISSUE_DEPTH = "/tissue/depth"
 TISSUE_POINTS = "/tissue/points"
 TRACKING_POINTS = "/tracking/points"
 FORCE_ESTIMATE = "/force/estimate"
+# Beside each estimate (same stamp, object frame, N; torque zeros): the half-width of its calibrated band
+# (the estimate +- it covers the stated share of frames, 90%; NaN when the model has no calibration)
+# and how far each component lies beyond the training forces' range (signed, 0 inside).
+FORCE_BAND = "/force/estimate/band"
+FORCE_BEYOND = "/force/estimate/beyond"
 
 DERIVED_TOPICS: dict[str, str] = {
     TISSUE_MASK: "sensor_msgs/msg/CompressedImage",
@@ -67,6 +72,8 @@ DERIVED_TOPICS: dict[str, str] = {
     TISSUE_POINTS: "sensor_msgs/msg/PointCloud2",
     TRACKING_POINTS: "sensor_msgs/msg/PointCloud2",
     FORCE_ESTIMATE: "geometry_msgs/msg/WrenchStamped",
+    FORCE_BAND: "geometry_msgs/msg/WrenchStamped",
+    FORCE_BEYOND: "geometry_msgs/msg/WrenchStamped",
     TF_STATIC: "tf2_msgs/msg/TFMessage",
 }
 
@@ -82,6 +89,8 @@ LIVE_TOPICS: dict[str, str] = {
     TISSUE_POINTS: DERIVED_TOPICS[TISSUE_POINTS],
     TRACKING_POINTS: DERIVED_TOPICS[TRACKING_POINTS],
     FORCE_ESTIMATE: DERIVED_TOPICS[FORCE_ESTIMATE],
+    FORCE_BAND: DERIVED_TOPICS[FORCE_BAND],
+    FORCE_BEYOND: DERIVED_TOPICS[FORCE_BEYOND],
     TF: "tf2_msgs/msg/TFMessage",
 }
 

@@ -6,6 +6,7 @@ The heavy modules (torch, the models) are imported inside `run`, so `vfdata --he
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -21,7 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "predict", help="estimate forces on a recording without a force sensor (overlay video, plot, MCAP)",
         description="Processes the recording (depth, tissue mask, object frame, tracks), runs the trained "
                     "point model and writes OUT/<id>.force.mcap (/force/estimate, WrenchStamped in the object "
-                    "frame 'tissue_object'), OUT/<id>.force.png and OUT/<id>.overlay.mp4; existing outputs are "
+                    "frame 'tissue_object'; beside it /force/estimate/band, the half-width of each component's "
+                    "calibrated 90% band, and /force/estimate/beyond, how far it lies beyond the training range), "
+                    "OUT/<id>.force.png and OUT/<id>.overlay.mp4; existing outputs are "
                     "kept unless --overwrite. Without an ECM pose the object frame's X axis is arbitrary (the "
                     "image's up direction made perpendicular to the tissue axis); on an RGB-D recording the frame is "
                     "the board's (Z its normal, X the image's right). The output says which. --stream feeds the "
@@ -94,6 +97,15 @@ def run(args: argparse.Namespace) -> int:
         m = result.metrics
         print(f"RMSE against the recording's force sensor: {m['rmse']:.3f} N (Fx {m['rmse_fx']:.3f}, Fy "
               f"{m['rmse_fy']:.3f}, Fz {m['rmse_fz']:.3f}; the average of the three, as Table I)")
+    print(f"band: {result.band}")
+    if result.band_metrics is not None:
+        b = result.band_metrics
+        print("band against the force sensor: coverage " + ", ".join(
+            f"{c} {b['coverage_' + c.lower()]:.0%} (+-{b['half_width_' + c.lower()]:.2f} N)"
+            for c in ("Fx", "Fy", "Fz")))
+    if result.frames_beyond:
+        print(f"warning: {result.frames_beyond} of {result.frames} frames have a force beyond the training range "
+              f"(marked on /force/estimate/beyond and in the plot): no band speaks for them")
     stages = {**result.stage_fps, "force": result.force_fps}
     print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     for path in (result.force_mcap, result.plot, result.video):
@@ -147,12 +159,16 @@ def _stream(args: argparse.Namespace) -> int:
     finally:
         source.close()
     latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
+    calibration = estimator.regressor.band_calibration
     confidence = estimator.confidence
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
                          object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
                                         "object_frame_kind": kind, "camera_frame_id": camera_frame,
+                                        "band": json.dumps(None if calibration is None else calibration.to_dict()),
                                         **confidence.metadata()},
-                         overwrite=args.overwrite, camera_frame_id=camera_frame)
+                         overwrite=args.overwrite, camera_frame_id=camera_frame,
+                         band_n=np.stack([e.band_n for e in estimates]),
+                         beyond_n=np.stack([e.beyond_n for e in estimates]))
     if confidence.doubtful:
         print(f"warning: {args.recording}: doubtful: {confidence.describe()}", file=sys.stderr)
     per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}

@@ -74,6 +74,10 @@ def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: d
     if transfer:
         (out / "transfer.md").write_text(transfer)
         paths["transfer.md"] = out / "transfer.md"
+    sure = tables.band_markdown(runs, labels, dataset)
+    if sure:
+        (out / "band.md").write_text(sure)
+        paths["band.md"] = out / "band.md"
     checked = claims(aggregated)
     if checked:
         (out / "claims.json").write_text(json.dumps(checked, indent=2))
@@ -347,8 +351,9 @@ def doubtful_markdown(doubtful: list[dict]) -> str:
 
 
 def summary_text(paths: dict[str, Path]) -> str:
-    """What the command prints at the end: Table I (or II), the claims and where everything is."""
-    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "doubtful.md") if key in paths]
+    """What the command prints at the end: Table I (or II), how sure (the band per view), the claims and where
+    everything is."""
+    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "band.md", "doubtful.md") if key in paths]
     if "claims" in paths:
         for claim in json.loads(paths["claims"].read_text()).values():
             lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")

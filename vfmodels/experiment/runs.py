@@ -1,7 +1,9 @@
 """A finished run's folder: `OUT/runs/<variant>/seed<k>/` with predictions.npz (the test frames:
-recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N) and metrics.json, written last
-(with the validation split's pooled metrics under "val", the reference a test orientation's error is
-compared with)."""
+recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N, and for a model with a band
+band (M, 3) N, its half-width, and spread (M, 3) N, its signal), validation.npz (the same of the
+validation frames, which the band was calibrated on) and metrics.json, written last (with the validation
+split's pooled metrics under "val", the reference a test orientation's error is compared with, and the
+band's coverage under "band")."""
 
 from __future__ import annotations
 
@@ -27,7 +29,11 @@ def write_run(run_dir: Path, predictions: dict[str, np.ndarray], summary: dict,
     groups = {str(k): v for k, v in metrics["groups"].items()}
     summary = {**summary, "test_frames": int(len(predictions["true"])), "pooled": metrics["pooled"],
                "mean": metrics["mean"], "std": metrics["std"], "groups": groups}
+    if "band" in metrics:
+        summary["band"] = {"pooled": metrics["band"]["pooled"],
+                           "groups": {str(k): v for k, v in metrics["band"]["groups"].items()}}
     if validation is not None:
+        np.savez_compressed(run_dir / "validation.npz", **validation)
         summary["val"] = run_metrics(validation)["pooled"]
     tmp = run_dir / "metrics.json.partial"
     tmp.write_text(json.dumps(summary, indent=2))

@@ -184,15 +184,30 @@ def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.nda
 
 
 def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.ndarray | None = None,
-                      measured_n: np.ndarray | None = None, title: str = "") -> Path:
+                      measured_n: np.ndarray | None = None, title: str = "", band_n: np.ndarray | None = None,
+                      beyond_n: np.ndarray | None = None, coverage: float | None = None) -> Path:
     """`vfdata predict`'s plot: Fx, Fy, Fz (N) against the frame index, one panel each. With the
     recording's measured force: measured solid in colour, estimated dashed black (as Fig. 7), and
-    each panel's RMSE in its label."""
+    each panel's RMSE in its label. With `band_n` (T, 3) N, the band's half-width: the estimate +- it
+    shaded (and, with a measured force, the share of frames inside it); with `beyond_n` (T, 3) N, the
+    frames whose component lies beyond the training range marked on the panel's lower edge."""
     force = np.asarray(force_n, dtype=np.float64).reshape(-1, 3)
     index = np.arange(len(force)) if frame_index is None else np.asarray(frame_index)
+    band = None if band_n is None else np.asarray(band_n, dtype=np.float64).reshape(-1, 3)
+    stated = f"{coverage:.0%} band" if coverage is not None else "band"
     fig, axes = plt.subplots(3, 1, figsize=(10, 6.5), sharex=True)
     for k, (ax, comp, colour) in enumerate(zip(axes, COMPONENTS, ("tab:red", "tab:green", "tab:blue"), strict=True)):
         label = "estimated"
+        if band is not None and np.isfinite(band[:, k]).any():
+            band_label = stated
+            if measured_n is not None:
+                measured = np.asarray(measured_n, dtype=np.float64)[:, k]
+                known = np.isfinite(measured) & np.isfinite(band[:, k])
+                if known.any():
+                    inside = np.abs(force[known, k] - measured[known]) <= band[known, k]
+                    band_label += f" (holds {inside.mean():.0%} of the measured)"
+            ax.fill_between(index, force[:, k] - band[:, k], force[:, k] + band[:, k], color="0.5", alpha=0.3,
+                            lw=0, label=band_label)
         if measured_n is not None:
             measured = np.asarray(measured_n, dtype=np.float64)[:, k]
             known = np.isfinite(measured) & np.isfinite(force[:, k])
@@ -202,6 +217,11 @@ def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.nda
             ax.plot(index, force[:, k], color="black", lw=1.0, ls="--", label=label)
         else:
             ax.plot(index, force[:, k], color=colour, lw=1.2, label=label)
+        if beyond_n is not None:
+            beyond = np.asarray(beyond_n, dtype=np.float64).reshape(-1, 3)[:, k] != 0
+            if beyond.any():
+                ax.plot(index[beyond], np.full(int(beyond.sum()), 0.02), "|", color="tab:orange", ms=8,
+                        transform=ax.get_xaxis_transform(), label=f"beyond training ({beyond.sum()} frames)")
         ax.set_ylabel(f"F{comp[1]} (N)")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)

@@ -7,6 +7,9 @@ and the same per test orientation. A table cell is the pooled value averaged ove
 standard deviation across test orientations (also averaged over seeds; "n/a" with one orientation);
 the CSV keeps the spread across seeds as well.
 
+Band table (`band_markdown`): per model and test orientation, the stated 90% band's coverage and mean
+half-width against the RMSE there (`vfmodels.band`).
+
 Tracking table (Table III): coverage and NNI at force peaks per tracker; with simulator ground truth
 also the 3D tracking error (median / 95th percentile, mm) split along and across the surface normal.
 
@@ -23,8 +26,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import spearmanr
 
-from vfmodels.metrics import grouped_force_metrics
+from vfmodels.band import grouped_band_metrics
+from vfmodels.metrics import COMPONENTS, grouped_force_metrics
 
 METRICS = (("rmse", "RMSE (N)"), ("nrmse", "NRMSE"), ("r2", "R²"))
 COLUMNS = (("fx", "Fx"), ("fy", "Fy"), ("fz", "Fz"), ("", "Avg"))
@@ -51,12 +56,65 @@ def check_predictions(predictions: Mapping[str, np.ndarray], where: str = "predi
 
 def run_metrics(predictions: Mapping[str, np.ndarray]) -> dict:
     """Metrics of one run from its test frames: {"pooled", "mean", "std", "groups"} as
-    `vfmodels.metrics.grouped_force_metrics`, grouped by orientation (deg)."""
+    `vfmodels.metrics.grouped_force_metrics`, grouped by orientation (deg); with "band" when the frames
+    carry a calibrated band (`vfmodels.band.grouped_band_metrics`: coverage and mean half-width)."""
     check_predictions(predictions)
     known = np.isfinite(predictions["true"]).all(axis=1) & np.isfinite(predictions["pred"]).all(axis=1)
     orientation = np.asarray(predictions["orientation_deg"], dtype=np.float64)[known]
-    return grouped_force_metrics(np.asarray(predictions["pred"])[known], np.asarray(predictions["true"])[known],
-                                 orientation)
+    pred, true = np.asarray(predictions["pred"])[known], np.asarray(predictions["true"])[known]
+    result = grouped_force_metrics(pred, true, orientation)
+    half = np.asarray(predictions["band"])[known] if "band" in predictions else None
+    if half is not None and len(half) and np.isfinite(half).all():
+        result["band"] = grouped_band_metrics(pred, true, half, orientation)
+    return result
+
+
+def band_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, str], dataset: str) -> str:
+    """How sure each model is at each test orientation: the stated band's coverage and mean half-width
+    (N) per component against the RMSE there, means over seeds, and Spearman's correlation between the
+    per-view half-width and RMSE over every seed's views. Empty when no run has a band."""
+    rows = {name: [r for r in found if "band" in r] for name, found in runs.items()}
+    rows = {name: found for name, found in rows.items() if found}
+    if not rows:
+        return ""
+    lines = [f"**How sure on {dataset}: the 90% band at each test orientation** (coverage: share of test frames "
+             "inside the band; half-width: its mean +- in N; RMSE in N; means over seeds)", "",
+             "| model | view | seeds | coverage Fx / Fy / Fz | half-width Fx / Fy / Fz | RMSE Fx / Fy / Fz "
+             "| half-width / RMSE |", "| --- | --- | ---: | ---: | ---: | ---: | ---: |"]
+    notes = []
+    for name, found in rows.items():
+        angles = sorted({float(a) for r in found for a in r["band"]["groups"]})
+        for view in ["pooled", *angles]:
+            cells = [_band_cells(r, view) for r in found]
+            cells = [c for c in cells if c is not None]
+            if not cells:
+                continue
+            mean = np.mean(cells, axis=0)
+            ratio = mean[3:6].mean() / mean[6:9].mean() if mean[6:9].mean() > 0 else np.nan
+            lines.append(f"| {labels.get(name, name)} | {view if view == 'pooled' else f'{view:g}°'} | {len(cells)} | "
+                         + " / ".join(f"{v:.0%}" for v in mean[:3]) + " | "
+                         + " / ".join(f"{v:.2f}" for v in mean[3:6]) + " | "
+                         + " / ".join(f"{v:.2f}" for v in mean[6:9]) + f" | {ratio:.2f} |")
+        views = [_band_cells(r, float(a)) for r in found for a in r["band"]["groups"]]
+        width = [c[3:6].mean() for c in views if c is not None]
+        rmse = [c[6:9].mean() for c in views if c is not None]
+        if len(width) >= 3:
+            rho = float(spearmanr(width, rmse).statistic)
+            notes.append(f"{labels.get(name, name)}: Spearman(half-width, RMSE) over {len(width)} views {rho:.2f}")
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
+
+
+def _band_cells(run: Mapping, view: float | str) -> np.ndarray | None:
+    """(coverage x3, half-width x3, RMSE x3) of one run at a view ("pooled" or degrees), None if absent."""
+    if view == "pooled":
+        band, force = run["band"]["pooled"], run["pooled"]
+    else:
+        band = next((m for k, m in run["band"]["groups"].items() if float(k) == view), None)
+        force = next((m for k, m in run["groups"].items() if float(k) == view), None)
+        if band is None or force is None:
+            return None
+    return np.array([band[f"coverage_{c}"] for c in COMPONENTS] + [band[f"half_width_{c}"] for c in COMPONENTS]
+                    + [force[f"rmse_{c}"] for c in COMPONENTS])
 
 
 def transfer_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, str], dataset: str) -> str:
