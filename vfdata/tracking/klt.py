@@ -31,9 +31,12 @@ class KLTTracker:
 
     `lift="stereo"` needs `reference_right` (the right rectified image of the reference frame),
     `baseline_mm` and a `right_image` at every update; `working_range_mm` (near, far) bounds the
-    disparities it accepts, `stereo_smoothing` in [0, 1) filters each point's disparity over time
-    (`StereoLift`). The reference points are then lifted by their stereo match too, so that the
-    displacements compare positions lifted the same way."""
+    disparities it accepts (`StereoLift`). The reference points are then lifted by their stereo match
+    too, so that the displacements compare positions lifted the same way.
+
+    `smoothing` in [0, 1), for either lift, filters each point's depth along its ray over time: the
+    weight of its previous depth in the new one (an exponential filter, restarted where a point has
+    no depth; 0: none)."""
 
     def __init__(
         self,
@@ -47,13 +50,15 @@ class KLTTracker:
         reference_right: np.ndarray | None = None,
         baseline_mm: float | None = None,
         working_range_mm: tuple[float, float] | None = None,
-        stereo_smoothing: float = 0.0,
+        smoothing: float = 0.0,
     ):
         if lift not in LIFTS:
             raise ValueError(f"lift '{lift}' is not one of {', '.join(LIFTS)}")
+        if not 0.0 <= smoothing < 1.0:
+            raise ValueError(f"smoothing {smoothing} is not in [0, 1)")
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
-        self.camera, self.lift = camera, lift
+        self.camera, self.lift, self.smoothing = camera, lift, float(smoothing)
         self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.max_forward_backward_px = max_forward_backward_px
         self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN once lost
@@ -64,7 +69,7 @@ class KLTTracker:
         if lift == "stereo":
             if reference_right is None or baseline_mm is None:
                 raise ValueError("lift 'stereo' needs the right image and the baseline (a stereo recording)")
-            self.stereo = StereoLift(camera, baseline_mm, working_range_mm, len(self.reference), stereo_smoothing)
+            self.stereo = StereoLift(camera, baseline_mm, working_range_mm, len(self.reference))
             # Where the reference match is rejected the point stays the cloud's (the depth map's) own.
             lifted, self.from_stereo = self.stereo.lift(self.uv, self._image, to_gray(reference_right), self.reference)
             self.reference[self.from_stereo] = lifted[self.from_stereo]
@@ -73,6 +78,15 @@ class KLTTracker:
     @property
     def points(self) -> np.ndarray:
         return self._points.copy()
+
+    def _smooth(self, lifted: np.ndarray) -> np.ndarray:
+        """`lifted` (n, 3) with each depth filtered against the latest frame's, along the point's ray."""
+        previous = self._points[:, 2]
+        z = lifted[:, 2]
+        blend = np.isfinite(previous) & np.isfinite(z)
+        scale = np.ones(len(z))
+        scale[blend] = (self.smoothing * previous[blend] + (1.0 - self.smoothing) * z[blend]) / z[blend]
+        return lifted * scale[:, None]  # the same ray, the filtered depth
 
     def update(
         self, image: np.ndarray, depth_mm: np.ndarray, mask: np.ndarray | None = None,
@@ -86,11 +100,12 @@ class KLTTracker:
         self.alive[lost] = False
         self.uv[lost] = np.nan
         self._image = gray
-        self._points = lift_pixels(self.uv, depth_mm, self.camera)
+        points = lift_pixels(self.uv, depth_mm, self.camera)
         if self.stereo is not None:
             if right_image is None:
                 raise ValueError("lift 'stereo' needs the right image of every frame")
-            self._points, self.from_stereo = self.stereo.lift(self.uv, gray, to_gray(right_image), self._points)
+            points, self.from_stereo = self.stereo.lift(self.uv, gray, to_gray(right_image), points)
+        self._points = self._smooth(points) if self.smoothing > 0 else points
         visible = np.isfinite(self._points).all(axis=1)
         if mask is not None:
             visible &= self.camera.in_mask(self._points, np.asarray(mask))  # NaN points project nowhere
