@@ -1,6 +1,7 @@
 """Depth along the line of sight (issue 32, item 5): the `klt` tracker's lifts against the simulator's truth.
 
     python bench/study_stereo_lift.py DATA [DATA ...] [--lifts depth stereo stereo:0.5] [--frames N] [--all]
+    python bench/study_stereo_lift.py --summary A.json B.json ...      # the means of earlier --json runs
 
 DATA: a `vfdata synth` folder; its test recordings are studied (--all: every recording). Each raw folder
 is converted to MCAP once (kept beside it as <id>.mcap) and run through the engine as `vfdata process`
@@ -114,14 +115,33 @@ def scores(points: np.ndarray, visible: np.ndarray, stereo: np.ndarray, raw: Pat
             "stereo": float(stereo[ok].mean()), "into_deg": float(np.degrees(np.arcsin(abs(rotation[2, 2]))))}
 
 
+BANDS = ((0.0, 20.0, "frontal, into < 20"), (20.0, 40.0, "into 20-40"), (40.0, 90.0, "into 40-60+"))
+
+
+def summary(rows: list[dict], lifts: list[str]) -> None:
+    """Means over the recordings of each band of `into` (how far the tube runs into depth), then all."""
+    for lo, hi, label in (*BANDS, (0.0, 90.0, "all")):
+        band = [r for r in rows if lo <= r["into_deg"] < hi]
+        if not band:
+            continue
+        print(f"\nmean over {len({(r['data'], r['recording']) for r in band})} recordings, {label} degrees")
+        for lift in lifts:
+            mine = [r for r in band if r["lift"] == lift]
+            print(f"{'':<40}{lift:<12}" + "".join(f"{np.mean([r[c] for r in mine]):>9.3f}" for c in COLUMNS))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("data", nargs="+", type=Path, help="vfdata synth folders")
+    parser.add_argument("data", nargs="*", type=Path, help="vfdata synth folders")
     parser.add_argument("--lifts", nargs="+", default=["depth", "stereo"])
     parser.add_argument("--frames", type=int, default=None, help="only the first N frames of each recording")
     parser.add_argument("--all", action="store_true", help="every recording, not only the test ones")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--summary", nargs="+", type=Path, help="only print the summary of these --json files")
     args = parser.parse_args()
+    if args.summary:
+        rows = [r for path in args.summary for r in json.loads(path.read_text())]
+        return summary(rows, list(dict.fromkeys(r["lift"] for r in rows)))
     lifts = [Lift.parse(t) for t in args.lifts]
     print(f"load average {os.getloadavg()[0]:.1f}; lifts {', '.join(lift.name for lift in lifts)}")
     print(f"{'recording':<28}{'view':>6}{'into':>6}  {'lift':<12}" + "".join(f"{c:>9}" for c in COLUMNS))
@@ -138,10 +158,7 @@ def main() -> None:
                     rows.append(row)
                     print(f"{data.name + '/' + rec_id:<28}{view:>6.0f}{row['into_deg']:>6.0f}  {lift.name:<12}"
                           + "".join(f"{row[c]:>9.3f}" for c in COLUMNS), flush=True)
-    print("\nmean over recordings")
-    for lift in lifts:
-        mine = [r for r in rows if r["lift"] == lift.name]
-        print(f"{'':<40}{lift.name:<12}" + "".join(f"{np.mean([r[c] for r in mine]):>9.3f}" for c in COLUMNS))
+    summary(rows, [lift.name for lift in lifts])
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 
