@@ -263,3 +263,25 @@ def test_the_papers_frame_on_request_is_the_papers_search_on_the_first_cloud(rec
     np.testing.assert_allclose(derived.object_frame.z_axis, expected.z_axis, atol=1e-3)
     assert "axis_fits" not in derived.meta.json("object_frame_check", {})  # none of the product's checks ran
     assert "axis_fits" in DerivedRecording.open(processed).meta.json("object_frame_check", {})
+
+
+def test_the_stereo_lift_of_klt_gets_the_right_images(recording, tmp_path):
+    """`--tracker klt --tracker-options lift=stereo`: the engine hands each frame's right image to the
+    tracker, which lifts the same 2D tracks by their own stereo match (docs/tracking.md)."""
+    tracks = {}
+    for lift in ("depth", "stereo"):
+        out = tmp_path / f"{lift}.processed.mcap"
+        assert main(["process", str(recording), str(out), "--tracker", "klt", "--tracker-options", f"lift={lift}",
+                     "--points", "64", "--quiet"]) == 0
+        derived = DerivedRecording.open(out)
+        assert json.loads(derived.meta.get("tracker_parameters"))["lift"] == lift
+        written = derived.tracks()
+        tracks[lift] = [written.points_camera_mm(i) for i in range(FRAMES)]
+    camera = Recording.open(recording).camera
+    for f in (0, FRAMES - 1):
+        depth, stereo = tracks["depth"][f], tracks["stereo"][f]
+        seen = np.isfinite(depth).all(axis=1) & np.isfinite(stereo).all(axis=1)
+        assert seen.mean() > 0.8
+        # The same 2D tracks (the same rays), lifted to other depths where the stereo match was taken.
+        np.testing.assert_allclose(camera.project(stereo[seen]), camera.project(depth[seen]), atol=1e-2)
+        assert np.mean(np.abs(stereo[seen, 2] - depth[seen, 2]) > 1e-3) > 0.3

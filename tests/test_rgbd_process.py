@@ -105,6 +105,9 @@ def test_process_rgbd_refuses_stereo_depth_and_the_tube_frame(tmp_path):
         process_recording(rec, options=ProcessOptions(progress=False, depth="stereoanyvideo"))
     with pytest.raises(InputError, match="does not apply to an RGB-D recording"):
         process_recording(rec, options=ProcessOptions(progress=False, object_frame="tissue"))
+    with pytest.raises(InputError, match="has no right image: klt's lift 'stereo' does not apply"):
+        process_recording(rec, options=ProcessOptions(progress=False, tracker="klt",
+                                                      tracker_options={"lift": "stereo"}))
     assert not (tmp_path / "rec.processed.mcap").exists()
 
 

@@ -95,6 +95,7 @@ class ImageStages:
     depth_mm: np.ndarray  # (H, W) float32, NaN unknown
     mask: np.ndarray  # (H, W) bool
     cloud_mm: np.ndarray  # (M, 3) left camera frame
+    right: np.ndarray | None = None  # the right rectified image (None: an RGB-D frame), for the stereo lift
 
 
 @dataclass
@@ -229,7 +230,7 @@ class FrameEngine:
         t = self.clock.add("mask", t)
         cloud = tissue_cloud(depth_mm, mask, self.camera)
         self.clock.add("cloud", t)
-        return ImageStages(depth_mm, mask, cloud)
+        return ImageStages(depth_mm, mask, cloud, right)
 
     def _max_disparity_px(self) -> int | None:
         return self._depth_options().get("max_disparity") if self.options.depth == "sgbm" else None
@@ -250,8 +251,11 @@ class FrameEngine:
     def track(self, index: int, stamp_ns: int, left: np.ndarray, images: ImageStages) -> FrameResult:
         """The frame's tracked points; the first frame also fixes the object frame and the tracker."""
         t = self.clock.now()
+        stereo = images.right is not None and self.baseline_mm > 0
         inputs = FrameInputs(index=index, camera=self.camera, image_bgr=left, depth_mm=images.depth_mm,
-                             mask=images.mask, cloud_mm=images.cloud_mm)
+                             mask=images.mask, cloud_mm=images.cloud_mm, right_bgr=images.right if stereo else None,
+                             baseline_mm=self.baseline_mm if stereo else None,
+                             working_range_mm=self.options.working_range_mm)
         points = visible = None
         if self.frames == 0:
             self._start(inputs)
@@ -300,13 +304,13 @@ class FrameEngine:
         """(stamp_ns, left, right) rectified pairs -> one FrameResult each, in order. The depth backend
         sees them as a stream, so it can overlap consecutive frames (sgbm matches the next pair in a
         second thread while this one is refined); time spent producing the pairs counts as "decode"."""
-        pending: list[tuple[int, np.ndarray]] = []
+        pending: list[tuple[int, np.ndarray, np.ndarray]] = []
 
         def feed():
             started = self.clock.now()
             for stamp_ns, left, right in pairs:
                 started = self.clock.add("decode", started)
-                pending.append((stamp_ns, left))
+                pending.append((stamp_ns, left, right))
                 yield left, right
                 started = self.clock.now()
 
@@ -322,8 +326,9 @@ class FrameEngine:
             # Waiting for the depth includes producing the pairs it pulled: that counts as decode.
             self.clock.add("depth", t)
             self.clock.seconds["depth"] -= self.clock.seconds["decode"] - decode_before
-            stamp_ns, left = pending.pop(0)
-            yield self.track(index, stamp_ns, left, self.image_stages(left, None, index == 0, depth))
+            stamp_ns, left, right = pending.pop(0)
+            # The depth is given, so the right image only travels on to the tracker (the stereo lift).
+            yield self.track(index, stamp_ns, left, self.image_stages(left, right, index == 0, depth))
             index += 1
 
     def run_depth(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Iterator[FrameResult]:

@@ -142,7 +142,8 @@ def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
     board frame unless the camera frame is asked for. The geometry trackers get a weak anchor to the
     reference positions (`lambda_anchor` 1 unless given): an organ on a board stays in place and only
     dents, and without it the points slid 3 mm along the surface over 200 frames at rest (measured on
-    the Gao et al. recording; with it 0.2 mm, and the tracked press follows Fz more closely)."""
+    the Gao et al. recording; with it 0.2 mm, and the tracked press follows Fz more closely). `klt` lifts
+    with the recorded depth (`lift=depth`): there is no right image to match in."""
     if options.depth not in ("sgbm", SENSOR_DEPTH):
         raise InputError(src, f"an RGB-D recording brings its depth: depth '{options.depth}' does not apply "
                               f"(leave --depth out, or --depth {SENSOR_DEPTH})")
@@ -157,6 +158,9 @@ def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
     kind = TRACKER_KINDS.get(options.tracker)
     for key, value in (kind.rgbd_options if kind is not None else {}).items():
         tracker_options.setdefault(key, value)
+    if tracker_options.get("lift", "depth") != "depth":
+        raise InputError(src, f"an RGB-D recording has no right image: {options.tracker}'s lift "
+                              f"'{tracker_options['lift']}' does not apply (lift=depth)")
     return replace(options, depth=SENSOR_DEPTH, segment="plane" if options.segment == "colortrack" else options.segment,
                    object_frame="board" if options.object_frame == "auto" else options.object_frame,
                    tracker_options=tracker_options)

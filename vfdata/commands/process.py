@@ -63,7 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
                                     "(default: prompt_box in the recording's metadata)")
     p.add_argument("--tracker", default="geometry", help=TRACKER_HELP)
-    p.add_argument("--tracker-options", help="tracker options, key=value,...")
+    p.add_argument("--tracker-options", help="tracker options, key=value,... (e.g. for klt: lift=stereo, "
+                   "smoothing=0.5; docs/tracking.md)")
     p.add_argument("--points", type=int, default=256, help="tracked points (default 256)")
     p.add_argument("--ground-truth", type=Path, help="simulator ground_truth/ folder (default: beside the raw folder)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames")

@@ -32,6 +32,7 @@ class SimRecording:
     material_points: np.ndarray  # (F, P, 3) mm
     material_normals: np.ndarray  # (F, P, 3)
     force_n: np.ndarray  # (F, 3) per frame
+    baseline_mm: float = 0.0  # the rectified pair's
 
     @classmethod
     def open(cls, folder: str | Path) -> SimRecording:
@@ -40,19 +41,20 @@ class SimRecording:
         for needed in ("calibration.yaml", "ground_truth/points.npy", "ground_truth/normals.npy"):
             if not (folder / needed).is_file():
                 raise InputError(folder, f"not a simulated recording (no {needed})")
-        camera = StereoCalibration.load(folder / "calibration.yaml").rectified.left
+        rectified = StereoCalibration.load(folder / "calibration.yaml").rectified
         points = np.load(gt / "points.npy")
         normals = np.load(gt / "normals.npy")
         force = np.load(gt / "force.npy") if (gt / "force.npy").is_file() else np.zeros((len(points), 3))
-        return cls(folder, camera, points, normals, force)
+        return cls(folder, rectified.left, points, normals, force, rectified.baseline_mm)
 
     @property
     def num_frames(self) -> int:
         return len(self.material_points)
 
-    def image(self, frame: int) -> np.ndarray:
-        """(H, W, 3) uint8 BGR left image (OpenCV order, as `Recording.frame` gives); PNG or JPEG."""
-        path = self.folder / "left" / f"{frame:06d}.png"
+    def image(self, frame: int, view: str = "left") -> np.ndarray:
+        """(H, W, 3) uint8 BGR image of `view` (left or right; OpenCV order, as `Recording.frame` gives);
+        PNG or JPEG. The simulator renders rectified views."""
+        path = self.folder / view / f"{frame:06d}.png"
         if not path.is_file():
             path = path.with_suffix(".jpg")
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -123,7 +125,8 @@ def run_tracker(
         raise ValueError(f"unknown tracker {name!r} (choose from {', '.join(TRACKERS)})")
     count = rec.num_frames if frames is None else min(frames, rec.num_frames)
     first = FrameInputs(index=0, camera=rec.camera, image_bgr=rec.image(0), depth_mm=rec.depth_mm(0),
-                        mask=rec.mask(0), cloud_mm=rec.cloud(0, cloud_points, seed))
+                        mask=rec.mask(0), cloud_mm=rec.cloud(0, cloud_points, seed), right_bgr=rec.image(0, "right"),
+                        baseline_mm=rec.baseline_mm)
     tracker = make_tracker(name, first, num_points, seed,
                            ground_truth=(rec.material_points, rec.material_normals), **options)
     points, visible = [tracker.points], [tracker.visible]
@@ -157,6 +160,8 @@ def _frame_inputs(rec: SimRecording, frame: int, needed: frozenset[str], cloud_p
         depth_mm=rec.depth_mm(frame) if "depth_mm" in needed else None,
         mask=rec.mask(frame),
         cloud_mm=rec.cloud(frame, cloud_points, seed) if "cloud_mm" in needed else None,
+        right_bgr=rec.image(frame, "right") if "right_bgr" in needed else None,
+        baseline_mm=rec.baseline_mm,
     )
 
 

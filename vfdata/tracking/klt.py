@@ -1,10 +1,13 @@
 """The `klt` baseline: a 2D tracker lifted to 3D, the stand-in for the paper's CoTracker ablation.
 
 The same 256 reference points as the geometry tracker are projected into the reference left image and
-followed frame to frame with OpenCV's pyramidal Lucas-Kanade; each frame's 2D position is lifted to 3D
-with that frame's depth map. A point is lost for good, as a 2D tracker would lose it, when LK fails,
-the forward-backward check fails (occlusion by the instrument, specular highlights, weak texture) or
-it leaves the image; lost points are NaN and never visible again.
+followed frame to frame with OpenCV's pyramidal Lucas-Kanade. A point is lost for good, as a 2D tracker
+would lose it, when LK fails, the forward-backward check fails (occlusion by the instrument, specular
+highlights, weak texture) or it leaves the image; lost points are NaN and never visible again.
+
+Each frame's 2D positions are lifted to 3D (`lift`) with that frame's depth map (`"depth"`), or by each
+point's own stereo match in the right image of the same pair, triangulated, with the depth map where
+the match is rejected (`"stereo"`, vfdata.tracking.stereo_lift; docs/tracking.md has the figures).
 """
 
 from __future__ import annotations
@@ -15,12 +18,25 @@ from vfdata.calibration import PinholeCamera
 from vfdata.tracking.flow import to_gray, track_lk
 from vfdata.tracking.lifting import lift_pixels
 from vfdata.tracking.sampling import select_reference_points
+from vfdata.tracking.stereo_lift import StereoLift
+
+LIFTS = ("depth", "stereo")
+DEFAULT_LIFT = "depth"
 
 
 class KLTTracker:
     """reference_points: (N, 3) reference tissue cloud (mm, camera frame); reference_image: the left
-    image of that frame. `.update(image, depth_mm, mask)` -> (points (n, 3) mm, NaN when lost or
-    without depth; visible (n,) bool)."""
+    image of that frame. `.update(image, depth_mm, mask, right_image)` -> (points (n, 3) mm, NaN when
+    lost or without depth; visible (n,) bool).
+
+    `lift="stereo"` needs `reference_right` (the right rectified image of the reference frame),
+    `baseline_mm` and a `right_image` at every update; `working_range_mm` (near, far) bounds the
+    disparities it accepts (`StereoLift`). The reference points are then lifted by their stereo match
+    too, so that the displacements compare positions lifted the same way.
+
+    `smoothing` in [0, 1), for either lift, filters each point's depth along its ray over time: the
+    weight of its previous depth in the new one (an exponential filter, restarted where a point has
+    no depth; 0: none)."""
 
     def __init__(
         self,
@@ -30,23 +46,51 @@ class KLTTracker:
         num_points: int = 256,
         seed: int = 0,
         max_forward_backward_px: float = 1.0,
+        lift: str = DEFAULT_LIFT,
+        reference_right: np.ndarray | None = None,
+        baseline_mm: float | None = None,
+        working_range_mm: tuple[float, float] | None = None,
+        smoothing: float = 0.0,
     ):
+        if lift not in LIFTS:
+            raise ValueError(f"lift '{lift}' is not one of {', '.join(LIFTS)}")
+        if not 0.0 <= smoothing < 1.0:
+            raise ValueError(f"smoothing {smoothing} is not in [0, 1)")
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
-        self.camera = camera
+        self.camera, self.lift, self.smoothing = camera, lift, float(smoothing)
         self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.max_forward_backward_px = max_forward_backward_px
         self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN once lost
         self.alive = np.isfinite(self.uv).all(axis=1)
-        self._points = self.reference.copy()
         self._image = to_gray(reference_image)
+        self.stereo: StereoLift | None = None
+        self.from_stereo = np.zeros(len(self.reference), bool)  # which points the latest frame lifted by stereo
+        if lift == "stereo":
+            if reference_right is None or baseline_mm is None:
+                raise ValueError("lift 'stereo' needs the right image and the baseline (a stereo recording)")
+            self.stereo = StereoLift(camera, baseline_mm, working_range_mm, len(self.reference))
+            # Where the reference match is rejected the point stays the cloud's (the depth map's) own.
+            lifted, self.from_stereo = self.stereo.lift(self.uv, self._image, to_gray(reference_right), self.reference)
+            self.reference[self.from_stereo] = lifted[self.from_stereo]
+        self._points = self.reference.copy()
 
     @property
     def points(self) -> np.ndarray:
         return self._points.copy()
 
+    def _smooth(self, lifted: np.ndarray) -> np.ndarray:
+        """`lifted` (n, 3) with each depth filtered against the latest frame's, along the point's ray."""
+        previous = self._points[:, 2]
+        z = lifted[:, 2]
+        blend = np.isfinite(previous) & np.isfinite(z)
+        scale = np.ones(len(z))
+        scale[blend] = (self.smoothing * previous[blend] + (1.0 - self.smoothing) * z[blend]) / z[blend]
+        return lifted * scale[:, None]  # the same ray, the filtered depth
+
     def update(
-        self, image: np.ndarray, depth_mm: np.ndarray, mask: np.ndarray | None = None
+        self, image: np.ndarray, depth_mm: np.ndarray, mask: np.ndarray | None = None,
+        right_image: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         gray = to_gray(image)
         idx = np.flatnonzero(self.alive)
@@ -56,7 +100,12 @@ class KLTTracker:
         self.alive[lost] = False
         self.uv[lost] = np.nan
         self._image = gray
-        self._points = lift_pixels(self.uv, depth_mm, self.camera)
+        points = lift_pixels(self.uv, depth_mm, self.camera)
+        if self.stereo is not None:
+            if right_image is None:
+                raise ValueError("lift 'stereo' needs the right image of every frame")
+            points, self.from_stereo = self.stereo.lift(self.uv, gray, to_gray(right_image), points)
+        self._points = self._smooth(points) if self.smoothing > 0 else points
         visible = np.isfinite(self._points).all(axis=1)
         if mask is not None:
             visible &= self.camera.in_mask(self._points, np.asarray(mask))  # NaN points project nowhere

@@ -32,7 +32,7 @@ from vfdata.tracker_kinds import TRACKER_KINDS
 from vfdata.tracking.cotracker import CoTrackerTracker
 from vfdata.tracking.geometry import GeometryTracker
 from vfdata.tracking.groundtruth import GroundTruthTracker
-from vfdata.tracking.klt import KLTTracker
+from vfdata.tracking.klt import DEFAULT_LIFT, KLTTracker
 from vfdata.tracking.sampling import select_reference_points
 
 # The simulator's material points and normals, (F, P, 3) each: its ground_truth/ folder, or the arrays.
@@ -50,6 +50,9 @@ class FrameInputs:
     depth_mm: np.ndarray | None = None  # (H, W) z-depth in mm of the left camera; NaN or 0 = none
     mask: np.ndarray | None = None  # (H, W) bool tissue mask
     cloud_mm: np.ndarray | None = None  # (M, 3) tissue cloud, mm, left camera frame
+    right_bgr: np.ndarray | None = None  # (H, W, 3) uint8 right rectified image (None: an RGB-D recording)
+    baseline_mm: float | None = None  # the rectified pair's baseline (None: no right view)
+    working_range_mm: tuple[float, float] | None = None  # nearest and farthest surface expected, mm
 
 
 class Tracker(Protocol):
@@ -163,22 +166,27 @@ class _Geometry(_Adapter):
 
 
 class _KLT(_Adapter):
-    """`klt` (vfdata.tracking.klt): Lucas-Kanade in the left images, lifted with the depth maps."""
+    """`klt` (vfdata.tracking.klt): Lucas-Kanade in the left images, lifted with the depth maps or, with
+    `lift="stereo"`, by each point's match in the right image (options: KLTTracker's)."""
 
     name = "klt"
-    inputs = frozenset({"image_bgr", "depth_mm", "mask"})
-    first_inputs = frozenset({"cloud_mm", "image_bgr", "mask"})
 
     def __init__(self, num_points: int, seed: int, **options):
         super().__init__(num_points, seed)
         self.options = options
+        self.lift = options.get("lift", DEFAULT_LIFT)
+        stereo = frozenset({"right_bgr", "baseline_mm"}) if self.lift == "stereo" else frozenset()
+        self.inputs = frozenset({"image_bgr", "depth_mm", "mask"}) | stereo
+        self.first_inputs = frozenset({"cloud_mm", "image_bgr", "mask"}) | stereo
 
     def _build(self, frame: FrameInputs) -> None:
+        stereo = {"reference_right": frame.right_bgr, "baseline_mm": frame.baseline_mm,
+                  "working_range_mm": frame.working_range_mm} if self.lift == "stereo" else {}
         self._tracker = KLTTracker(frame.cloud_mm, frame.camera, frame.image_bgr, num_points=self.num_points,
-                                   seed=self.seed, **self.options)
+                                   seed=self.seed, **stereo, **self.options)
 
     def _update(self, frame: FrameInputs) -> tuple[np.ndarray, np.ndarray]:
-        return self._tracker.update(frame.image_bgr, frame.depth_mm, frame.mask)
+        return self._tracker.update(frame.image_bgr, frame.depth_mm, frame.mask, frame.right_bgr)
 
 
 class _CoTracker(_Adapter):
