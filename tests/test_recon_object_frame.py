@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import time
 
+import cv2
 import numpy as np
 import pytest
 from recon_fixtures import random_rotation, tapered_tube
@@ -183,6 +184,30 @@ def test_the_roundest_fit_is_taken_over_one_an_occluder_band_turned(seed):
     assert diagnostics["axis_fits"]["cloud"]["deg"] > 15.0 and not diagnostics["axis_doubtful"]
     fits = diagnostics["axis_fits"]
     assert fits["frontal"]["residual"] < fits["cloud"]["residual"]
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_a_smaller_cloud_as_round_about_a_turned_axis_makes_the_axis_doubtful(seed):
+    """glove_009 of the sweep: the metal-free cloud (the chosen fit's judge) is a partial tube that a turned
+    axis fits roundly, while the metal-free frontal cloud, too small to be chosen, is as round about the
+    true axis. Two clouds that each look like a tube about axes 20 degrees apart: the axis is a guess."""
+    from vfdata.recon.tissue_frame import chosen_axis
+
+    rng = np.random.default_rng(seed)
+    rotation = _side_view_rotation(rng)
+    tube = tapered_tube(rng, rotation, n=3000)
+    turn = cv2.Rodrigues(np.radians(20.0) * rotation[:, 0])[0]  # 20 degrees about the tube's X
+    turned = tapered_tube(rng, turn @ rotation, n=3000)
+    share = 0.3 * len(tube) / len(turned)
+    rival = turned[: int(share * len(turned))]
+    clouds = {"cloud": tube, "clean": tube[: int(0.7 * len(tube))], "frontal": tube[::2]}
+    _axis, diagnostics = chosen_axis({**clouds, "clean_frontal": rival})
+    assert diagnostics["axis_from"] != "clean_frontal" and diagnostics["axis_fits"]["clean_frontal"]["deg"] > 15.0
+    assert diagnostics["axis_doubtful"] and diagnostics["axis_rivals"] == ["clean_frontal"]
+    _axis, diagnostics = chosen_axis({**clouds, "clean_frontal": tube[: len(rival)]})
+    assert not diagnostics["axis_doubtful"] and diagnostics["axis_rivals"] == []  # the same tube: no rival
+    _axis, diagnostics = chosen_axis({**clouds, "clean_frontal": rival[: int(0.2 * len(tube))]})
+    assert "clean_frontal" not in diagnostics["axis_fits"] and not diagnostics["axis_doubtful"]  # too little
 
 
 def test_a_cloud_too_small_to_trust_is_not_fitted_and_a_flat_one_is_doubtful():

@@ -316,8 +316,8 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "origin_cut_by_view": str(engine.origin_cut).lower(),
         # the axis fits and the clamped end's cues (vfdata.recon.tissue_frame), and the verdict (vfdata.confidence)
         "object_frame_check": json.dumps(_jsonable({k: v for k, v in engine.frame.diagnostics.items()
-                                                    if k in ("axis_from", "axis_doubtful", "axis_fits", "end",
-                                                             "doubtful")})),
+                                                    if k in ("axis_from", "axis_doubtful", "axis_fits", "axis_rivals",
+                                                             "end", "doubtful")})),
         **confidence.metadata(),
         "up_known": str(engine.up is not None).lower(),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
