@@ -8,6 +8,11 @@ truth (Z error, origin offset, whether the recording was judged doubtful) and th
 Prints the tables, then the median and the worst seed, and writes OUT/sweep.json and OUT/sweep.md.
 Every step resumes: a finished dataset or run is kept.
 
+`--report-only --recheck-axis` reruns, with the code of today, the first frame's depth, mask and axis of
+every recording already in OUT/sweep.json (seconds each; no tracking or training) and adds the axis doubts
+that code raises to the recording's verdict, marking the report `axis_rechecked`: for a rule on the axis
+that came after the sweep ran (the frame itself, and so the forces, are unchanged by such a rule).
+
     python bench/sweep.py --out /data/sweep --colon-seeds 101-108 --glove-seeds 201-204
     python bench/sweep.py --out /tmp/s --colon-seeds 5 --frames 120 --epochs 2     # a quick look
 
@@ -128,10 +133,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, help="frames per recording (default: the presets')")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report-only", action="store_true", help="the tables and targets of OUT/sweep.json only")
+    parser.add_argument("--recheck-axis", action="store_true",
+                        help="with --report-only: add the axis doubts of today's code on each first frame")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.report_only:
         report = json.loads((args.out / "sweep.json").read_text())
+        if args.recheck_axis:
+            recheck_axis(args.out, report)
         report["targets"] = targets(report)
         (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
         text = markdown(report)
@@ -154,6 +163,30 @@ def main() -> None:
     text = markdown(report)
     (args.out / "sweep.md").write_text(text)
     print("\n" + text)
+
+
+def recheck_axis(out: Path, report: dict) -> None:
+    """Add to each recording's verdict in `report` the axis doubt of today's code on its first frame."""
+    from vfdata.engine import EngineOptions
+    from vfdata.processing import stereo_engine
+    from vfdata.recording import Recording
+
+    for row in report["seeds"]:
+        manifest = out / f"{row['preset']}_{row['seed']}" / "data" / f"{row['preset']}.manifest.yaml"
+        entries = {e.id: e for e in load_manifest(manifest).entries}
+        for f in row["frames"]:
+            entry = entries[f["id"]]
+            with Recording.open(entry.mcap) as rec:
+                engine = stereo_engine(rec, entry.mcap, EngineOptions(tracker="none", object_frame="tissue"))
+                first = rec.rectified_frame(0)
+                engine.track(0, first.stamp_ns, first.left, engine.image_stages(first.left, first.right, first=True))
+            diagnostics = engine.frame.diagnostics
+            if diagnostics["axis_doubtful"] and "axis" not in f["doubtful"]:
+                f["doubtful"] = [*f["doubtful"], "axis"]
+                f["axis_rechecked"] = diagnostics.get("axis_rivals", [])
+            print(f"{row['preset']} {row['seed']} {f['id']}: Z {f['z_err_deg']:.1f} deg, doubtful {f['doubtful']}",
+                  flush=True)
+    report["axis_rechecked"] = True
 
 
 # Issue 32's targets on the sweep: (name, preset or None for all, what, threshold).
@@ -239,6 +272,9 @@ def markdown(report: dict) -> str:
                      f"{len(unflagged)}; flagged doubtful: {sum(bool(r['doubtful']) for r in all_frames)}")
         lines.append(f"- first-frame mask IoU: median {np.median([r['iou'] for r in all_frames]):.3f}, "
                      f"min {min(r['iou'] for r in all_frames):.3f}")
+    if report.get("axis_rechecked"):
+        lines.append("- verdicts: the axis doubts of today's code on each first frame added after the run "
+                     "(`--recheck-axis`); frames and forces as processed")
     if report.get("targets"):
         lines += ["", "| target | measured | wanted | met |", "| --- | --- | --- | --- |"]
         lines += [f"| {name} | {t['measured']} | {t['target']} | {'yes' if t['met'] else 'no'} |"
