@@ -5,7 +5,8 @@ the seed), `vfdata experiment` with the variants (default `visionforce` and `rid
 the documented settings), then per seed and variant the pooled R^2 and RMSE of the test split, the worst
 test view's RMSE against the validation RMSE, and per recording the object frame against the simulator's
 truth (Z error, origin offset, whether the recording was judged doubtful) and the first frame's mask IoU.
-Prints the tables, then the median and the worst seed, and writes OUT/sweep.json and OUT/sweep.md.
+Prints the tables, then the median and the worst seed, and writes OUT/sweep.json, OUT/sweep.md and
+OUT/claims.json (issue 32's targets: measured, wanted, met; as the experiment's claims.json).
 Every step resumes: a finished dataset or run is kept.
 
 `--report-only --recheck-axis` reruns, with the code of today, the first frame's depth, mask and axis of
@@ -160,6 +161,7 @@ def main() -> None:
             (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
     report["targets"] = targets(report)
     (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
+    (args.out / "claims.json").write_text(json.dumps(report["targets"], indent=2))
     text = markdown(report)
     (args.out / "sweep.md").write_text(text)
     print("\n" + text)
