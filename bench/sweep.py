@@ -144,6 +144,7 @@ def main() -> None:
             recheck_axis(args.out, report)
         report["targets"] = targets(report)
         (args.out / "sweep.json").write_text(json.dumps(report, indent=2))
+        (args.out / "claims.json").write_text(json.dumps(report["targets"], indent=2))
         text = markdown(report)
         (args.out / "sweep.md").write_text(text)
         print(text)
