@@ -195,6 +195,20 @@ def test_one_thread_by_default_and_the_callers_counts_restored(recording, proces
         main(["process", str(recording), str(tmp_path / "u.mcap"), "--threads", "0"])
 
 
+def test_set_threads_reaches_torch_loaded_before_or_after_and_loads_no_torch_itself():
+    """Every command and worker sets its threads through `vfdata.threads.set_threads`: a simulator worker
+    that never needs torch must not load it, and torch loaded later takes the count from OMP_NUM_THREADS."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from vfdata.threads import set_threads; set_threads(1); "
+            "loaded = 'torch' in sys.modules; import torch; before = torch.get_num_threads(); "
+            "set_threads(2); print(loaded, before, torch.get_num_threads())")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
+    assert out.stdout.split() == ["False", "1", "2"]
+
+
 def test_a_derived_file_reads_like_a_recording(processed):
     """frame(i) holds what the file has for that frame; metadata values come typed."""
     derived = DerivedRecording.open(processed)

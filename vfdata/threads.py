@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -44,12 +45,14 @@ def set_threads(threads: int | None = DEFAULT_THREADS) -> None:
     Also sets OMP_NUM_THREADS for worker processes started later (DataLoader workers, DDP ranks)."""
     if check_threads(threads) is None:
         return
-    import cv2  # here, not at the top: the command line starts without torch
-    import torch
+    import cv2  # here, not at the top: the command line starts without it
 
-    torch.set_num_threads(threads)
     cv2.setNumThreads(threads)
     os.environ["OMP_NUM_THREADS"] = str(threads)
+    # torch only when this process has loaded it: torch takes its intra-op count from OMP_NUM_THREADS when it
+    # loads, so a process that never needs torch (a simulator worker) is not made to load it (1-2 s, 300 MB)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(threads)
 
 
 @contextmanager

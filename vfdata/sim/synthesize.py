@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-import cv2
 import yaml
 from tqdm import tqdm
 
@@ -34,6 +33,7 @@ from vfdata.sim.raw_writer import (
 )
 from vfdata.sim.render import warm_up
 from vfdata.sim.simulation import Recording, build_recording, grasped_nodes, sensor_samples, simulate
+from vfdata.threads import set_threads
 
 # Names other modules and benchmarks import from here since before the split.
 __all__ = [
@@ -80,7 +80,7 @@ _COUNTER = None
 def _init_worker(counter) -> None:
     global _COUNTER
     _COUNTER = counter
-    cv2.setNumThreads(1)
+    set_threads(1)
 
 
 def _make_one(args: tuple[str, int, int, str, int | None, str, tuple[float, ...] | None]) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from vfdata.device import resolve_device
 from vfdata.errors import InputError
+from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int, set_threads
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -58,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="where the tracker's SIREN fit and nearest neighbours and the "
                                                    "force model run: cpu (default), cuda (cuda:N), auto (the CPU: "
                                                    "one frame at a time measured faster there, docs/gpu.md)")
-    p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads (default 1)")
+    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
     p.add_argument("--quiet", action="store_true", help="no summary line")
     p.set_defaults(func=run)
 
@@ -93,9 +94,6 @@ def open_source(args: argparse.Namespace):
 def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=None) -> int:
     """`ready(server)`, when given, is called once the server listens (tests use it to connect)."""
     # here, not at the top: torch, the models and foxglove; `vfdata --help` starts without them
-    import cv2
-    import torch
-
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.processing import rgbd_options
@@ -110,8 +108,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
 
     ckpt = checkpoint_file(args.ckpt)
     tracker, tracker_options = prediction_tracker(ckpt, device)  # as the training recordings were tracked
-    torch.set_num_threads(args.threads)
-    cv2.setNumThreads(args.threads)
+    set_threads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt, up = open_source(args)
     server = None

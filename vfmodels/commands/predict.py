@@ -6,15 +6,13 @@ The heavy modules (torch, the models) are imported inside `run`, so `vfdata --he
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from vfdata.device import DEVICE_HELP, resolve_device
-from vfdata.errors import OutputExistsError
+from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int, set_threads
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,8 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pipelined", action="store_true",
                    help="with --stream: image stages of the next frame in a second thread (2 cores)")
     p.add_argument("--device", default="cpu", help=DEVICE_HELP)
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch/OpenCV threads (default 1, the fastest for per-frame work on a few cores)")
+    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -65,14 +62,7 @@ def checkpoint_file(path: Path) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    # here, not at the top: torch and the models; `vfdata --help` starts without them
-    import cv2
-    import torch
-
-    # Per-frame work on small tensors: extra threads only add synchronisation (and with --pipelined
-    # two stages run at once), so one thread per stage is the fastest on a few cores.
-    torch.set_num_threads(args.threads)
-    cv2.setNumThreads(args.threads)
+    set_threads(args.threads)  # with --pipelined two stages run at once: one thread each (vfdata.threads)
     args.ckpt = checkpoint_file(args.ckpt)
     # the tracker and a stream's model go frame by frame; offline, the model runs over the whole recording
     args.tracker_device = resolve_device(args.device, "frames")
@@ -115,72 +105,25 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _stream(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
-    from vfdata.processing import camera_up, recording_prompt, rgbd_options
-    from vfdata.recon.object_frame import x_axis_meaning
-    from vfdata.recording.derived import write_force_estimate
-    from vfdata.sources import RecordingReplay
-    from vfmodels.live import StreamingForceEstimator
+    from vfmodels.stream import stream_recording
 
-    out = Path(args.out or args.recording.parent)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{args.recording.name.removesuffix('.mcap')}.force.mcap"
-    if path.exists() and not args.overwrite:
-        raise OutputExistsError(path)
-    source = RecordingReplay(args.recording, speed=0.0, max_frames=args.max_frames)
-    try:
-        rec = source.recording
-        options = EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
-                                tracker_options=args.tracker_options)
-        if source.is_rgbd:
-            options = rgbd_options(options, args.recording)
-        estimator = StreamingForceEstimator(args.ckpt, source.camera, source.baseline_mm,
-                                            recording_prompt(rec, args.recording, args.prompt), options,
-                                            up=camera_up(rec), window=args.window, pipelined=args.pipelined,
-                                            device=args.device)
-        n, camera_frame = source.frames, source.camera_frame_id
-        estimates, latencies = [], []
-        # decoding stands in for the camera driver: in this thread, before the clock starts
-        for stamp_ns, left, right, depth_mm in tqdm(source.decoded(), total=n, desc="stream", unit="frame",
-                                                    disable=args.quiet):
-            started = time.perf_counter()
-            result = estimator.push(left, right, stamp_ns, depth_mm)
-            latencies.append(time.perf_counter() - started)
-            if result is not None:
-                estimates.append(result)
-        object_frame = estimator.frame
-        kind = object_frame.kind
-        x_axis = x_axis_meaning(kind, estimator.up is not None)
-        estimates += estimator.flush()
-        estimator.close()
-    finally:
-        source.close()
-    latency_ms = np.array(latencies[2:]) * 1000.0  # the first pushes also fix the object frame
-    calibration = estimator.regressor.band_calibration
-    confidence = estimator.confidence
-    write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
-                         object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
-                                        "object_frame_kind": kind, "camera_frame_id": camera_frame,
-                                        "band": json.dumps(None if calibration is None else calibration.to_dict()),
-                                        **confidence.metadata()},
-                         overwrite=args.overwrite, camera_frame_id=camera_frame,
-                         band_n=np.stack([e.band_n for e in estimates]),
-                         beyond_n=np.stack([e.beyond_n for e in estimates]))
-    if confidence.doubtful:
-        print(f"warning: {args.recording}: doubtful: {confidence.describe()}", file=sys.stderr)
-    per_stage = {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()}
-    per_stage_cpu = {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}
-    delay = 2 if args.pipelined else 1
-    print(f"{len(estimates)} estimates from {n} frames; per-frame latency (push) median "
+    options = EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
+                            tracker_options=args.tracker_options)
+    result = stream_recording(args.recording, args.ckpt, args.out, options, prompt=args.prompt, window=args.window,
+                              pipelined=args.pipelined, device=args.device, max_frames=args.max_frames,
+                              overwrite=args.overwrite, progress=not args.quiet)
+    if result.confidence.doubtful:
+        print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)
+    latency_ms, delay = result.latency_ms, 2 if args.pipelined else 1
+    print(f"{result.estimates} estimates from {result.frames} frames; per-frame latency (push) median "
           f"{np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} ms, "
           f"{1000.0 / np.mean(latency_ms):.1f} frames/s (+ {delay} frame(s) of delay: the central-difference "
           "velocity needs the next frame" + (", and the pipeline one more" if args.pipelined else "") + ")")
-    print("ms/frame per stage, wall: " + ", ".join(f"{k} {v:.1f}" for k, v in per_stage.items()))
+    print("ms/frame per stage, wall: " + ", ".join(f"{k} {v:.1f}" for k, v in result.stage_ms.items()))
     print("ms/frame per stage, CPU of its thread (= wall on an idle core): "
-          + ", ".join(f"{k} {v:.1f}" for k, v in per_stage_cpu.items())
-          + f"; sum {sum(per_stage_cpu.values()):.1f} (includes the first frame's set-up)")
-    print(f"wrote {path}")
+          + ", ".join(f"{k} {v:.1f}" for k, v in result.stage_cpu_ms.items())
+          + f"; sum {sum(result.stage_cpu_ms.values()):.1f} (includes the first frame's set-up)")
+    print(f"wrote {result.force_mcap}")
     return 0

@@ -22,6 +22,7 @@ from vfdata.lerobot.folder import is_lerobot_dataset
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording
+from vfdata.threads import set_threads
 from vfmodels.experiment.variants import PROCESSINGS, derived_name
 
 
@@ -91,9 +92,7 @@ def any_depth_only(entries: list[ManifestEntry]) -> bool:
 
 def process(job: ProcessJob) -> str:
     """Run one job; one torch/BLAS thread, since recordings run side by side in processes."""
-    import torch  # here, not at the top: the experiment command's parser reads this module without torch
-
-    torch.set_num_threads(1)
+    set_threads(1)
     tracker_options = shared_device_options(job.tracker, job.device)
     process_recording(job.src, job.out, ProcessOptions(depth=job.depth, segment=job.segment, tracker=job.tracker,
                                                        prompt=job.prompt, max_frames=job.max_frames,

@@ -36,6 +36,7 @@ from vfdata.executor import run_jobs
 from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfdata.recording.derived import read_confidence
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
+from vfdata.threads import set_threads
 from vfmodels.config_files import CONFIGS
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
@@ -177,7 +178,7 @@ def run_job(job: tuple) -> Path:
     """One training run of the grid as a job (module level: it crosses to a Ray task); one torch
     thread, as the local grid trains."""
     variant, seed, manifest, run_dir, options, cache_dir = job
-    torch.set_num_threads(1)
+    set_threads(1)
     run_one(variant, seed, manifest, run_dir, options, cache_dir)
     return run_dir
 
@@ -208,7 +209,7 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
         variants = for_depth_only(variants)
     trackers = sorted({v.tracker for v in variants}, key=lambda t: t != "geometry")
     out.mkdir(parents=True, exist_ok=True)
-    torch.set_num_threads(1)  # training on small batches: one thread is the fastest on a few cores
+    set_threads(1)  # training on small batches: one thread is the fastest on a few cores
     training = resolve_device(options.device, "training")
     if training != "cpu":
         options = replace(options, train_args=[f"--trainer.accelerator={lightning_accelerator(training)}",
