@@ -37,10 +37,12 @@ def test_startup_does_not_import_torch():
 
 
 def test_process_help_names_every_registered_tracker():
-    from vfdata.commands.process import TRACKER_HELP
+    from vfdata.cli import build_parser
     from vfdata.tracking.registry import TRACKERS
 
-    assert all(name in TRACKER_HELP for name in TRACKERS)
+    process = build_parser()._subparsers._group_actions[0].choices["process"]
+    tracker_help = next(a.help for a in process._actions if "--tracker" in a.option_strings)
+    assert all(name in tracker_help for name in TRACKERS)
 
 
 def test_a_trackers_facts_come_from_its_kind():
@@ -62,6 +64,27 @@ def test_a_trackers_facts_come_from_its_kind():
                 tracker_device_options(name, "cuda")
         options = rgbd_options(EngineOptions(tracker=name), Path("rec.mcap")).tracker_options
         assert all(options[key] == value for key, value in kind.rgbd_options.items())
+
+
+def test_process_predict_and_live_take_the_same_pipeline_flags_to_the_same_options():
+    """One definition of the engine's flags (vfdata/commands/engine_flags.py): each command that runs the
+    engine accepts every one of them, and the same words give the same EngineOptions fields."""
+    from vfdata.cli import build_parser
+    from vfdata.commands.engine_flags import engine_settings
+
+    flags = ["--depth", "sgbm", "--depth-options", "scale=0.5", "--working-range-mm", "50", "250",
+             "--segment", "colortrack", "--object-frame", "paper", "--tracker", "klt", "--tracker-options",
+             "smoothing=0.5", "--points", "128", "--seed", "3", "--device", "cpu", "--threads", "2"]
+    parser = build_parser()
+    commands = {"process": ["process", "rec.mcap"], "predict": ["predict", "rec.mcap", "--ckpt", "m.ckpt"],
+                "live": ["live", "rec.mcap", "--ckpt", "m.ckpt"]}
+    settings = {name: engine_settings(parser.parse_args(argv + flags)) for name, argv in commands.items()}
+    assert settings["process"] == settings["predict"] == settings["live"]
+    assert settings["live"] == {"depth": "sgbm", "depth_options": {"scale": 0.5}, "segment": "colortrack",
+                                "segment_options": {}, "tracker": "klt", "tracker_options": {"smoothing": 0.5},
+                                "num_points": 128, "seed": 3, "working_range_mm": (50.0, 250.0),
+                                "object_frame": "paper"}
+    assert parser.parse_args(commands["predict"]).tracker is None  # the checkpoint's, unless given
 
 
 def _vfdata(*args: str) -> subprocess.Popen:

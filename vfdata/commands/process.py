@@ -3,32 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
+from vfdata.commands.engine_flags import add_engine_flags, engine_settings
 from vfdata.commands.outputs import skip_existing
 from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
 from vfdata.errors import VisionForceError
-from vfdata.object_frames import OBJECT_FRAME_HELP, OBJECT_FRAMES
-from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int
-from vfdata.tracker_kinds import TRACKER_HELP
+from vfdata.threads import positive_int
 
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
 # `vfdata --help` starts fast; the registry checks the tracker's name.
-
-
-def _options(text: str | None) -> dict:
-    """`key=value,key=value` (values parsed as JSON when they can be: numbers, true/false)."""
-    result = {}
-    for item in filter(None, (text or "").split(",")):
-        if "=" not in item:
-            raise VisionForceError(f"option '{item}' is not key=value")
-        key, value = item.split("=", 1)
-        try:
-            result[key.strip()] = json.loads(value)
-        except json.JSONDecodeError:
-            result[key.strip()] = value
-    return result
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,29 +33,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                          "'auto': the cluster this machine belongs to)")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="with --many --executor local: recordings processed in parallel processes (default 1)")
-    p.add_argument("--depth", default="sgbm", help="depth backend: sgbm (default), stereoanyvideo, recorded; an "
-                                                   "RGB-D recording's own depth (sensor) is always used")
-    p.add_argument("--depth-options", help="backend options, key=value,... (e.g. code=DIR,checkpoint=FILE)")
-    p.add_argument("--working-range-mm", type=float, nargs=2, default=(40.0, 300.0), metavar=("NEAR", "FAR"),
-                   help="nearest and farthest surface in front of the scope; sets the sgbm disparity range "
-                        "(default 40 300)")
-    p.add_argument("--segment", default="colortrack",
-                   help="mask backend: colortrack (default for stereo), sam2, plane (default for RGB-D: what stands "
-                        "above a flat board)")
-    p.add_argument("--object-frame", default="auto", choices=list(OBJECT_FRAMES), help=OBJECT_FRAME_HELP)
-    p.add_argument("--segment-options", help="backend options, key=value,... (e.g. config=...,checkpoint=...)")
     p.add_argument("--prompt", help="first-frame tissue prompt: box:x0,y0,x1,y1 or points:x,y;x,y "
                                     "(default: prompt_box in the recording's metadata)")
-    p.add_argument("--tracker", default="geometry", help=TRACKER_HELP)
-    p.add_argument("--tracker-options", help="tracker options, key=value,... (e.g. for klt: lift=stereo, "
-                   "smoothing=0.5; docs/tracking.md)")
-    p.add_argument("--points", type=int, default=256, help="tracked points (default 256)")
     p.add_argument("--ground-truth", type=Path, help="simulator ground_truth/ folder (default: beside the raw folder)")
     p.add_argument("--max-frames", type=int, help="process only the first N frames")
-    p.add_argument("--seed", type=int, default=0,
-                   help="random seed of the point sampling and the tracker (default 0; same seed: same tracks)")
-    p.add_argument("--device", default="cpu", help=DEVICE_HELP.replace("and the force model ", ""))
-    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
+    add_engine_flags(p, tracker_default="geometry", device_help=DEVICE_HELP.replace("and the force model ", ""))
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--skip-existing", action="store_true",
                    help="keep an existing output (and its picture) and exit 0: re-run a loop after an interruption")
@@ -108,14 +74,11 @@ def run(args: argparse.Namespace) -> int:
         target = args.out or default_output(args.src)
         if skip_existing(args, target, preview_path(target)):
             return 0
-    options = ProcessOptions(
-        depth=args.depth, depth_options=_options(args.depth_options), segment=args.segment,
-        segment_options=_options(args.segment_options), prompt=args.prompt, tracker=args.tracker,
-        tracker_options={**_options(args.tracker_options), **_tracker_device(args)}, num_points=args.points,
-        seed=args.seed,
-        ground_truth=args.ground_truth, max_frames=args.max_frames, progress=not args.quiet,
-        working_range_mm=tuple(args.working_range_mm), object_frame=args.object_frame, threads=args.threads,
-    )
+    settings = engine_settings(args)
+    settings["tracker_options"].update(_tracker_device(args))
+    options = ProcessOptions(**settings,
+                             prompt=args.prompt, ground_truth=args.ground_truth, max_frames=args.max_frames,
+                             progress=not args.quiet, threads=args.threads)
     if args.many:
         return _many(args, options)
     out = process_recording(args.src, target, options, overwrite=args.overwrite)

@@ -11,9 +11,10 @@ import sys
 import threading
 from pathlib import Path
 
-from vfdata.device import resolve_device
+from vfdata.commands.engine_flags import add_engine_flags, engine_settings
+from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.errors import InputError
-from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int, set_threads
+from vfdata.threads import set_threads
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -47,8 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--wait-for-client", type=float, default=0.0, metavar="SECONDS",
                    help="wait up to SECONDS for a client to subscribe to /force/estimate before starting")
     p.add_argument("--max-frames", type=int, help="stop after N frames")
-    p.add_argument("--depth", default="sgbm", help="depth backend (default sgbm)")
-    p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack)")
     p.add_argument("--depth-roi-margin", type=int, default=None, metavar="PX",
                    help="depth only in the previous frame's tissue box grown by PX pixels (default 24; 0: the "
                         "whole image, as offline processing)")
@@ -56,10 +55,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                              "trained on, 16 in every config); 0 carries the state forever")
     p.add_argument("--pipelined", action="store_true",
                    help="image stages of the next frame in a second thread (2 cores; one more frame of delay)")
-    p.add_argument("--device", default="cpu", help="where the tracker's SIREN fit and nearest neighbours and the "
-                                                   "force model run: cpu (default), cuda (cuda:N), auto (the CPU: "
-                                                   "one frame at a time measured faster there, docs/gpu.md)")
-    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
+    add_engine_flags(p, tracker_default=None, device_help=DEVICE_HELP,
+                     tracker_help="point tracker (default: the one whose tracks the model was trained on, saved in "
+                                  "the checkpoint)")
     p.add_argument("--quiet", action="store_true", help="no summary line")
     p.set_defaults(func=run)
 
@@ -107,14 +105,15 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfmodels.predict import prediction_tracker
 
     ckpt = checkpoint_file(args.ckpt)
-    tracker, tracker_options = prediction_tracker(ckpt, device)  # as the training recordings were tracked
+    tracker, tracker_options = prediction_tracker(ckpt, device, args.tracker)  # as the training tracks were
+    settings = {**engine_settings(args), "tracker": tracker}
+    settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
     set_threads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt, up = open_source(args)
     server = None
     try:
-        options = EngineOptions(depth=args.depth, segment=args.segment, tracker=tracker, depth_roi_margin_px=roi,
-                                tracker_options=tracker_options)
+        options = EngineOptions(**settings, depth_roi_margin_px=roi)
         if source.is_rgbd:  # the sensor's depth, the board's plane and frame, as `vfdata process` does
             options = rgbd_options(options, source.path)
         estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt, options,

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from vfdata.commands.engine_flags import add_engine_flags, engine_settings
 from vfdata.device import DEVICE_HELP, resolve_device
-from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, positive_int, set_threads
+from vfdata.threads import set_threads
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,11 +34,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prompt", help="first-frame tissue prompt, e.g. box:x0,y0,x1,y1 "
                                     "(default: prompt_box of the recording's metadata)")
     p.add_argument("--out", type=Path, help="output folder (default: beside the recording)")
-    p.add_argument("--depth", default="sgbm",
-                   help="depth backend (default sgbm; an RGB-D recording's own depth is always used)")
-    p.add_argument("--segment", default="colortrack", help="mask backend (default colortrack; plane for RGB-D)")
-    p.add_argument("--tracker", help="point tracker (default: the one whose tracks the model was trained on, "
-                                     "saved in the checkpoint; geometry for a checkpoint that does not say)")
     p.add_argument("--window", type=int, help="LSTM history in frames (default: the clip length the model was "
                                              "trained on, 16 in every config); 0 carries the state forever")
     p.add_argument("--max-frames", type=int, help="only the first N frames")
@@ -46,8 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stream", action="store_true", help="run the live, frame-by-frame estimator")
     p.add_argument("--pipelined", action="store_true",
                    help="with --stream: image stages of the next frame in a second thread (2 cores)")
-    p.add_argument("--device", default="cpu", help=DEVICE_HELP)
-    p.add_argument("--threads", type=positive_int, default=DEFAULT_THREADS, help=THREADS_HELP)
+    add_engine_flags(p, tracker_default=None, device_help=DEVICE_HELP,
+                     tracker_help="point tracker (default: the one whose tracks the model was trained on, saved in "
+                                  "the checkpoint; geometry for a checkpoint that does not say)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -69,14 +66,15 @@ def run(args: argparse.Namespace) -> int:
     args.device = resolve_device(args.device, "frames" if args.stream else "recording")
     from vfmodels.predict import prediction_tracker
 
-    args.tracker, args.tracker_options = prediction_tracker(args.ckpt, args.tracker_device, args.tracker)
+    tracker, tracker_options = prediction_tracker(args.ckpt, args.tracker_device, args.tracker)
+    settings = {**engine_settings(args), "tracker": tracker}
+    settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
     if args.stream:
-        return _stream(args)
+        return _stream(args, settings)
     from vfdata.processing import ProcessOptions
     from vfmodels.predict import predict_recording
 
-    options = ProcessOptions(depth=args.depth, segment=args.segment, prompt=args.prompt, max_frames=args.max_frames,
-                             tracker=args.tracker, tracker_options=args.tracker_options)
+    options = ProcessOptions(**settings, prompt=args.prompt, max_frames=args.max_frames, threads=args.threads)
     result = predict_recording(args.recording, args.ckpt, args.out, options, window=args.window,
                                video=not args.no_video, progress=not args.quiet, overwrite=args.overwrite,
                                device=args.device)
@@ -104,14 +102,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stream(args: argparse.Namespace) -> int:
+def _stream(args: argparse.Namespace, settings: dict) -> int:
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
     from vfmodels.stream import stream_recording
 
-    options = EngineOptions(depth=args.depth, segment=args.segment, tracker=args.tracker,
-                            tracker_options=args.tracker_options)
-    result = stream_recording(args.recording, args.ckpt, args.out, options, prompt=args.prompt, window=args.window,
+    result = stream_recording(args.recording, args.ckpt, args.out, EngineOptions(**settings), prompt=args.prompt,
+                              window=args.window,
                               pipelined=args.pipelined, device=args.device, max_frames=args.max_frames,
                               overwrite=args.overwrite, progress=not args.quiet)
     if result.confidence.doubtful:
