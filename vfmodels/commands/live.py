@@ -11,7 +11,7 @@ import sys
 import threading
 from pathlib import Path
 
-from vfdata.commands.engine_flags import add_engine_flags, engine_settings
+from vfdata.commands.engine_flags import add_engine_flags
 from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.errors import InputError
 from vfdata.threads import set_threads
@@ -96,18 +96,15 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.processing import rgbd_options
     from vfdata.recording import layout
-    from vfmodels.commands.predict import checkpoint_file
+    from vfmodels.commands.predict import checkpoint_file, model_engine_settings
     from vfmodels.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
     from vfmodels.live_session import LiveSession
 
     import_foxglove()  # the missing extra is said before anything else is opened
     device = resolve_device(args.device, "frames")  # the tracker and the model, one frame at a time
-    from vfmodels.predict import prediction_tracker
 
     ckpt = checkpoint_file(args.ckpt)
-    tracker, tracker_options = prediction_tracker(ckpt, device, args.tracker)  # as the training tracks were
-    settings = {**engine_settings(args), "tracker": tracker}
-    settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
+    settings = model_engine_settings(args, ckpt, device)  # tracked as the training recordings were
     set_threads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt, up = open_source(args)

@@ -58,17 +58,24 @@ def checkpoint_file(path: Path) -> Path:
     return path
 
 
+def model_engine_settings(args: argparse.Namespace, ckpt: Path, device: str) -> dict:
+    """The pipeline flags' EngineOptions fields, the tracker (and its options under the given ones) taken
+    from the checkpoint unless --tracker names one: the tracks the model was trained on (predict and live)."""
+    from vfmodels.predict import prediction_tracker  # here, not at the top: torch
+
+    tracker, tracker_options = prediction_tracker(ckpt, device, args.tracker)
+    settings = {**engine_settings(args), "tracker": tracker}
+    settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
+    return settings
+
+
 def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)  # with --pipelined two stages run at once: one thread each (vfdata.threads)
     args.ckpt = checkpoint_file(args.ckpt)
     # the tracker and a stream's model go frame by frame; offline, the model runs over the whole recording
     args.tracker_device = resolve_device(args.device, "frames")
     args.device = resolve_device(args.device, "frames" if args.stream else "recording")
-    from vfmodels.predict import prediction_tracker
-
-    tracker, tracker_options = prediction_tracker(args.ckpt, args.tracker_device, args.tracker)
-    settings = {**engine_settings(args), "tracker": tracker}
-    settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
+    settings = model_engine_settings(args, args.ckpt, args.tracker_device)
     if args.stream:
         return _stream(args, settings)
     from vfdata.processing import ProcessOptions
