@@ -27,7 +27,7 @@ import torch
 
 from vfdata.calibration import PinholeCamera
 from vfdata.clips.spec import ClipSpec
-from vfdata.clips.tokens import mirror_y, track_tokens
+from vfdata.clips.tokens import mirror_y, relaxation_step, relaxation_weight, track_tokens
 from vfdata.confidence import Confidence, ConfidenceWatch
 from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
@@ -83,6 +83,8 @@ class StreamingForceModel:
         self.state = None  # the temporal model's, when the window is the whole stream
         self.first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame: mirror side, subset
         self.reference: np.ndarray | None = None  # each point's first visible position (displacements)
+        self.average: np.ndarray | None = None  # the relaxation's average of each point's displacement
+        self.averages: deque = deque(maxlen=3)  # of the frames in `recent`
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray
              ) -> tuple[int, np.ndarray, np.ndarray] | None:
@@ -93,6 +95,11 @@ class StreamingForceModel:
             self.reference = np.full_like(points, np.nan)
         first_seen = np.isnan(self.reference).any(axis=1) & visible & np.isfinite(points).all(axis=1)
         self.reference[first_seen] = points[first_seen]
+        if "relax" in self.spec.features:  # stepped through every frame, as over a whole recording
+            ok = visible & np.isfinite(points).all(axis=1) & np.isfinite(self.reference).all(axis=1)
+            rate = skipped_frame_rate(self.spec.fps or 30.0, np.array(self.stamps, dtype=np.int64))
+            self.average = relaxation_step(self.average, points - self.reference, ok, relaxation_weight(rate))
+            self.averages.append(self.average)
         if self.first is None:
             self.first = (points, visible)
             return None
@@ -106,11 +113,14 @@ class StreamingForceModel:
         if len(self.recent) >= 2:
             while len(self.recent) > 2:
                 self.recent.popleft()
+            while len(self.averages) > 2:
+                self.averages.popleft()
             result = self._estimate(1)
         self.recent.clear()
         self.stamps.clear()
         self.embeddings.clear()
-        self.state = self.first = self.reference = None
+        self.averages.clear()
+        self.state = self.first = self.reference = self.average = None
         return result
 
     @torch.no_grad()
@@ -123,7 +133,8 @@ class StreamingForceModel:
             self.spec, np.stack([p[1] for p in recent]), np.stack([p[2] for p in recent]),
             np.array([p[0] for p in recent]), self.object_frame, first=self.first,
             fps=skipped_frame_rate(self.spec.fps or 30.0, history_ns), reference_mm=self.reference,
-            period_ns=float(np.median(np.diff(history_ns))) if len(history_ns) > 1 else None)
+            period_ns=float(np.median(np.diff(history_ns))) if len(history_ns) > 1 else None,
+            average_mm=np.stack(list(self.averages)) if self.averages else None)
         device = model_device(self.regressor)
         z = self.regressor.encode_frames(torch.from_numpy(tokens[target])[None, None].to(device),
                                          torch.from_numpy(valid[target])[None, None].to(device))  # (V, 1, D)

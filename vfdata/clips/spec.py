@@ -12,14 +12,16 @@ from vfdata.errors import VisionForceError
 Input = Literal["tracks", "cloud", "rgb", "depth"]
 Source = Literal["processed", "ground_truth", "ground_truth_surface"]
 Frame = Literal["object", "camera"]
-Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel", "polar_z_disp_vel"]
+Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel", "polar_z_disp_vel",
+                   "polar_z_disp_relax_vel"]
 Subset = Literal["all", "top_bottom_20"]
 
 FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "disp": 3, "ref_disp_vel": 9,
-                    "polar_disp_vel": 9, "polar_z_disp_vel": 12}
+                    "polar_disp_vel": 9, "polar_z_disp_vel": 12, "polar_z_disp_relax_vel": 15}
 # Features a tilt of the object frame can be applied to after the fact (`tokens.tilt_tokens`): 3-vectors
 # that turn with it, or polar_z's place, which with its place along Z gives the point relative to the tip.
-TILTABLE_FEATURES = ("polar_z_disp_vel", "disp_vel", "disp", "vel", "ref_disp_vel", "pos_vel", "pos")
+TILTABLE_FEATURES = ("polar_z_disp_vel", "polar_z_disp_relax_vel", "disp_vel", "disp", "vel", "ref_disp_vel",
+                     "pos_vel", "pos")
 INPUT_KEYS = {"tracks": "tokens", "cloud": "tokens", "rgb": "images", "depth": "depth"}
 
 
@@ -43,7 +45,10 @@ class ClipSpec:
             around the object's Z axis on its first frame as (cos th0, sin th0, r0 mm), th0 measured from X =
             up, then the displacement and the velocity: no position along Z, so no origin needed) or
             polar_z_disp_vel (the same with (0, 0, z0 - z_tip mm) after the polar place: the place along Z
-            counted from the tissue's free end, which a view cutting the clamped end off does not move).
+            counted from the tissue's free end, which a view cutting the clamped end off does not move) or
+            polar_z_disp_relax_vel (the same with the relaxation after the displacement: the displacement
+            less its causal exponential average over `RELAX_TAU_S`, mm: how far a point sits from where it
+            has been for the last seconds, which a viscoelastic tissue's force depends on; beyond the paper).
         subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
         clip_frames: frames per clip (T).
         stride: frames between clip starts.

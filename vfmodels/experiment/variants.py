@@ -66,6 +66,11 @@ VISIONFORCE_ABLATIONS: dict[str, Variant] = {v.name: v for v in (
     Variant("visionforce_velocity_only", "VisionForce, velocity only", "visionforce.yaml",
             tracker=VISIONFORCE_TRACKER,
             overrides=("--data.spec.features=vel", "--model.model.init_args.in_features=3")),
+    Variant("visionforce_relaxation", "VisionForce, with the relaxation", "visionforce.yaml",
+            tracker=VISIONFORCE_TRACKER,
+            overrides=("--data.spec.features=polar_z_disp_relax_vel", "--model.model.init_args.in_features=15")),
+    Variant("ridge_relaxation", "Ridge, with the relaxation", "visionforce.yaml", tracker=VISIONFORCE_TRACKER,
+            kind="ridge", overrides=("--data.spec.features=polar_z_disp_relax_vel",)),
 )}
 
 # The paper's grid: `proposed` is the paper's method, faithfully; the ablations and baselines around it.
