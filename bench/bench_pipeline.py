@@ -80,8 +80,8 @@ def main() -> int:
     import cv2
 
     from vfdata.engine import EngineOptions
-    from vfdata.processing import camera_up, recording_prompt
     from vfdata.recording import Recording
+    from vfdata.rig import StereoRig, camera_up, recording_prompt
     from vfmodels.live import StreamingForceEstimator
 
     torch.set_num_threads(args.threads)
@@ -101,11 +101,9 @@ def main() -> int:
     def stream(pipelined: bool):
         estimator = StreamingForceEstimator(
             ckpt,
-            camera,
-            baseline_mm,
+            StereoRig(recording, camera=camera, baseline_mm=baseline_mm, up=up),
             prompt,
             EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
-            up=up,
             pipelined=pipelined,
             window=args.window,
         )
@@ -182,7 +180,7 @@ def live_and_offline(recording: Path, ckpt: Path, frames: int, args) -> None:
     from vfdata.foxglove_server import FoxgloveServer
     from vfdata.processing import ProcessOptions
     from vfdata.recording import layout
-    from vfdata.sources import RecordingReplay, recording_defaults
+    from vfdata.sources import RecordingReplay
     from vfmodels.live import StreamingForceEstimator
     from vfmodels.live_session import LiveSession
     from vfmodels.predict import predict_recording
@@ -210,11 +208,10 @@ def live_and_offline(recording: Path, ckpt: Path, frames: int, args) -> None:
           f"{args.depth_roi_margin} px, a client subscribed to {layout.FORCE_ESTIMATE}")
     for pipelined, like_camera in ((False, False), (True, False), (False, True), (True, True)):
         source = RecordingReplay(recording, speed=1.0, max_frames=frames, like_camera=like_camera)
-        prompt, up = recording_defaults(source, None)
         estimator = StreamingForceEstimator(
-            ckpt, source.camera, source.baseline_mm, prompt,
+            ckpt, source.rig, source.rig.prompt(None),
             EngineOptions(depth=args.depth, segment=args.segment, depth_roi_margin_px=args.depth_roi_margin),
-            up=up, pipelined=pipelined, window=args.window)
+            pipelined=pipelined, window=args.window)
         server = FoxgloveServer(port=0)
         received: list[float] = []
         thread = threading.Thread(target=client, args=(server.url(), received), daemon=True)

@@ -18,9 +18,9 @@ import numpy as np
 from vfdata.conversion.raw_folder import convert_raw_folder
 from vfdata.engine import EngineOptions
 from vfdata.manifest import load_manifest
-from vfdata.processing import stereo_engine
 from vfdata.recon.segment import mask_iou
 from vfdata.recording import Recording
+from vfdata.rig import rig_for
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -41,7 +41,9 @@ def main() -> None:
         if not e.mcap.is_file():
             convert_raw_folder(e.raw, e.mcap)
         rec = Recording.open(e.mcap)
-        engine = stereo_engine(rec, e.mcap, EngineOptions(tracker="none", object_frame="tissue"))
+        rig = rig_for(rec, e.mcap)
+        engine = rig.engine(EngineOptions(tracker="none", object_frame="tissue"), rig.prompt(None),
+                            look_ahead=rec.num_frames)
         first = rec.rectified_frame(0)
         images = engine.image_stages(first.left, first.right, first=True)
         engine.track(0, first.stamp_ns, first.left, images)

@@ -61,8 +61,8 @@ def main() -> int:
     args = parser.parse_args()
 
     from vfdata.engine import EngineOptions, recorded_depths, recorded_masks
-    from vfdata.processing import camera_up, recording_prompt
     from vfdata.recording import Recording
+    from vfdata.rig import StereoRig, camera_up, recording_prompt
     from vfmodels.live import StreamingForceEstimator
 
     torch.set_num_threads(1)
@@ -85,7 +85,8 @@ def main() -> int:
     reference = None
     for label, options in [("(warm-up, not shown)", {}), *VARIANTS.items()]:
         cv2.setRNGSeed(0)
-        estimator = StreamingForceEstimator(ckpt, camera, baseline, prompt, EngineOptions(**options), up=up)
+        rig = StereoRig(recording, camera=camera, baseline_mm=baseline, up=up)
+        estimator = StreamingForceEstimator(ckpt, rig, prompt, EngineOptions(**options))
         depths, points = [], []
         estimator.on_frame = lambda r, d=depths, p=points: (d.append(r.depth_mm), p.append(r.points_mm))
         forces = [e.force_n for f in frames if (e := estimator.push(f.left, f.right, f.stamp_ns)) is not None]

@@ -40,8 +40,8 @@ from vfdata.conversion.options import ConvertOptions
 from vfdata.conversion.raw_folder import convert_raw_folder
 from vfdata.engine import EngineOptions
 from vfdata.manifest import load_manifest
-from vfdata.processing import stereo_engine, stereo_pairs
 from vfdata.recording import Recording
+from vfdata.rig import rig_for
 from vfdata.threads import thread_limit
 from vfdata.tracking.groundtruth import ground_truth_tracks
 
@@ -83,9 +83,10 @@ def track(mcap: Path, lift: Lift, frames: int | None, ground_truth: Path | None 
     rec = Recording.open(mcap)
     count = rec.num_frames if frames is None else min(frames, rec.num_frames)
     options = EngineOptions(tracker="klt", tracker_options=lift.options, object_frame="camera", depth=lift.depth)
-    engine = stereo_engine(rec, mcap, options, frames=count, ground_truth=ground_truth)
+    rig = rig_for(rec, mcap)
+    engine = rig.engine(options, rig.prompt(None), ground_truth, look_ahead=count)
     points, visible, stereo = [], [], []
-    for result in engine.run(stereo_pairs(rec, count)):
+    for result in engine.run(rig.frames(count)):
         points.append(result.points_mm)
         visible.append(result.visible)
         stereo.append(getattr(engine.tracker._tracker, "from_stereo", np.zeros(len(result.visible), bool)).copy())

@@ -171,8 +171,8 @@ def main() -> None:
 def recheck_axis(out: Path, report: dict) -> None:
     """Add to each recording's verdict in `report` the axis doubt of today's code on its first frame."""
     from vfdata.engine import EngineOptions
-    from vfdata.processing import stereo_engine
     from vfdata.recording import Recording
+    from vfdata.rig import rig_for
 
     for row in report["seeds"]:
         manifest = out / f"{row['preset']}_{row['seed']}" / "data" / f"{row['preset']}.manifest.yaml"
@@ -180,9 +180,10 @@ def recheck_axis(out: Path, report: dict) -> None:
         for f in row["frames"]:
             entry = entries[f["id"]]
             with Recording.open(entry.mcap) as rec:
-                engine = stereo_engine(rec, entry.mcap, EngineOptions(tracker="none", object_frame="tissue"))
-                first = rec.rectified_frame(0)
-                engine.track(0, first.stamp_ns, first.left, engine.image_stages(first.left, first.right, first=True))
+                rig = rig_for(rec, entry.mcap)
+                engine = rig.engine(EngineOptions(tracker="none", object_frame="tissue"), rig.prompt(None),
+                                    look_ahead=rec.num_frames)
+                engine.step(0, *next(rig.frames(1)))
             diagnostics = engine.frame.diagnostics
             if diagnostics["axis_doubtful"] and "axis" not in f["doubtful"]:
                 f["doubtful"] = [*f["doubtful"], "axis"]

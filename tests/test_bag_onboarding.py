@@ -70,7 +70,7 @@ def test_without_gravity_up_the_bag_says_so(tmp_path):
     out = tmp_path / "rec.mcap"
     assert main(["convert", str(bag), str(out), "--quiet", "--left-topic", "/lab/cam/left", "--right-topic",
                  "/lab/cam/right"]) == 0
-    from vfdata.processing import camera_up
+    from vfdata.rig import camera_up
 
     rec = Recording.open(out)
     assert rec.metadata.extra["gravity_up_assumed"] == "true" and camera_up(rec) is None

@@ -48,10 +48,11 @@ def test_process_help_names_every_registered_tracker():
 def test_a_trackers_facts_come_from_its_kind():
     """What the device policy, RGB-D processing and the reports say of a tracker is its entry in
     vfdata.tracker_kinds, and every entry can be made."""
+    from vfdata.calibration import PinholeCamera
     from vfdata.device import shared_device_options, tracker_device_options
     from vfdata.engine import EngineOptions
     from vfdata.errors import VisionForceError
-    from vfdata.processing import rgbd_options
+    from vfdata.rig import RgbdRig
     from vfdata.tracker_kinds import TRACKER_KINDS, tracker_label
     from vfdata.tracking.registry import TRACKERS
 
@@ -62,7 +63,8 @@ def test_a_trackers_facts_come_from_its_kind():
         if not kind.gpu:
             with pytest.raises(VisionForceError, match="CPU only"):
                 tracker_device_options(name, "cuda")
-        options = rgbd_options(EngineOptions(tracker=name), Path("rec.mcap")).tracker_options
+        rig = RgbdRig(Path("rec.mcap"), camera=PinholeCamera(100.0, 100.0, 32.0, 24.0, 64, 48))
+        options = rig.stage_options(EngineOptions(tracker=name)).tracker_options
         assert all(options[key] == value for key, value in kind.rgbd_options.items())
 
 

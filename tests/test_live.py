@@ -261,18 +261,17 @@ def test_depth_roi_is_the_mask_box_grown_and_aligned():
 
 
 def test_the_depth_region_of_interest_keeps_the_tissue_depth(recording):
-    from vfdata.engine import EngineOptions, FrameEngine, depth_roi
-    from vfdata.processing import camera_up, recording_prompt
+    from vfdata.engine import EngineOptions, depth_roi
+    from vfdata.rig import rig_for
 
-    with Recording.open(recording) as rec:
-        frames = [rec.rectified_frame(i) for i in range(3)]
-        prompt, up = recording_prompt(rec, recording, None), camera_up(rec)
-        camera, baseline = rec.camera, rec.stereo.baseline_mm
     runs = {}
-    for margin in (0, 24):
-        cv2.setRNGSeed(0)
-        engine = FrameEngine(camera, baseline, prompt, EngineOptions(depth_roi_margin_px=margin), up=up)
-        runs[margin] = [engine.step(i, f.stamp_ns, f.left, f.right) for i, f in enumerate(frames)]
+    with Recording.open(recording) as rec:
+        rig = rig_for(rec, recording)
+        frames = list(rig.frames(3))
+        for margin in (0, 24):
+            cv2.setRNGSeed(0)
+            engine = rig.engine(EngineOptions(depth_roi_margin_px=margin), rig.prompt(None))
+            runs[margin] = [engine.step(i, *f) for i, f in enumerate(frames)]
     whole, roi = runs[0][2], runs[24][2]
     y0, y1, x0, x1, _ = depth_roi(runs[24][1].mask, 24, None)
     outside = np.ones(roi.depth_mm.shape, bool)

@@ -390,7 +390,7 @@ def test_predict_recording_and_streaming_agree_on_a_simulated_recording(tmp_path
     """The whole offline pipeline (processing, model, MCAP, plot, video) on a simulated recording
     without using its force, then the live estimator (serial and pipelined) on the same frames."""
     from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
-    from vfdata.processing import camera_up
+    from vfdata.rig import StereoRig, camera_up
     from vfdata.sim import synthesize
 
     manifest = synthesize("mini", tmp_path / "data", seed=0, workers=1, progress=False, frames=20)
@@ -417,7 +417,8 @@ def test_predict_recording_and_streaming_agree_on_a_simulated_recording(tmp_path
                                    rec.metadata.extra["prompt_box"].strip("[]").split(","))
     for pipelined in (False, True):
         cv2.setRNGSeed(0)
-        live = StreamingForceEstimator(ckpt, camera, baseline, prompt, up=up, window=8, pipelined=pipelined)
+        rig = StereoRig(recording, camera=camera, baseline_mm=baseline, up=up)
+        live = StreamingForceEstimator(ckpt, rig, prompt, window=8, pipelined=pipelined)
         estimates = [e for f in frames if (e := live.push(f.left, f.right, f.stamp_ns)) is not None]
         assert len(estimates) == 20 - (2 if pipelined else 1)
         estimates += live.flush()

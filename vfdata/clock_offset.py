@@ -32,6 +32,7 @@ from tqdm import tqdm
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon.prompt import Prompt
 from vfdata.recording import Recording, layout
+from vfdata.rig import rig_for
 
 MOTION_SCALE = 0.25  # optical flow on images a quarter the size: motion of the tissue, not of its texture
 GRID = 4  # cells per side of the region whose mean flows are the motion features
@@ -283,7 +284,7 @@ def recording_offsets(path, max_offset_ms: float = 500.0, max_frames: int | None
         if not rec.has(layout.WRENCH):
             raise InputError(path, "no force topic: nothing to align with the video")
         frame_ns = rec.frame_times_ns[:frames]
-        image = _frame_image(rec)
+        image = rig_for(rec, path).motion_image
         first = image(0)
         box = _prompt_box(rec)
         region = tissue_region(box, first.shape[1], first.shape[0]) if box is not None else None
@@ -316,22 +317,6 @@ def _pose_offset(frame_ns: np.ndarray, whole: np.ndarray, pose, max_offset_ns: f
                                                        f"{turn_deg:.2f} deg): its clock cannot be seen in the video")
     changes = pose_changes(frame_ns, pose.times_ns, pose.position_m, pose.quaternion_xyzw)
     return estimate_offset("ECM pose", whole, frame_ns, pose.times_ns, changes, max_offset_ns, viscoelastic=False)
-
-
-def _frame_image(rec) -> Callable[[int], np.ndarray]:
-    """Frame i's image: the left view, or an RGB-D recording's colour (its depth drawn grey without one)."""
-    if not rec.is_rgbd:
-        return rec.left_image
-    if rec.has(layout.COLOR_IMAGE):
-        return rec.color_image
-
-    def depth_grey(i: int) -> np.ndarray:
-        depth = rec.depth_mm(i)
-        finite = depth[np.isfinite(depth)]
-        near, far = (np.percentile(finite, [1, 99]) if len(finite) else (0.0, 1.0))
-        return np.clip(np.nan_to_num((far - depth) / max(far - near, 1e-6)) * 255, 0, 255).astype(np.uint8)
-
-    return depth_grey
 
 
 def _prompt_box(rec) -> tuple[float, float, float, float] | None:

@@ -1,12 +1,13 @@
-"""The per-frame engine of the method: stereo pair -> depth -> tissue mask -> tissue cloud -> (first
-frame: object frame, reference points) -> tracked points. `vfdata process` (offline, into a derived
-MCAP), `vfmodels.predict` (offline, in memory) and the live estimator (`vfmodels.live`, one pair at a
-time) all drive this one engine.
+"""The per-frame engine of the method: stereo pair (or a depth camera's frame) -> depth -> tissue mask
+-> tissue cloud -> (first frame: object frame, reference points) -> tracked points. `vfdata process`
+(offline, into a derived MCAP), `vfmodels.predict` (offline, in memory) and the live estimator
+(`vfmodels.live`, one frame at a time) all drive this one engine. Its input, a recording or a camera,
+is a rig (`vfdata.rig`): the rig builds the engine and gives the frames.
 
-    engine = FrameEngine(camera, baseline_mm, Prompt.parse("box:..."), EngineOptions(), up=up)
-    for result in engine.run(stereo_pairs):        # offline: the depth backend may overlap frames
+    engine = rig.engine(rig.stage_options(EngineOptions()), rig.prompt(None))
+    for result in engine.run(rig.frames()):        # offline: the depth backend may overlap frames
         ...  result.mask, result.cloud_mm, result.points_mm, result.visible
-    result = engine.step(index, stamp_ns, left, right)   # live: one pair
+    result = engine.step(index, stamp_ns, left, right, depth_mm)   # live: one frame
 
 Each stage's wall time and the CPU time of the thread that ran it accumulate in `engine.clock`, so
 stage rates can be reported as the method runs (`StageClock.fps`), with the thread count beside them.
@@ -28,6 +29,7 @@ from vfdata.calibration import PinholeCamera
 from vfdata.errors import InputError
 from vfdata.object_frames import OBJECT_FRAMES, TUBE_FRAMES
 from vfdata.recon import Prompt, make_depth_estimator, make_segmenter, tissue_cloud
+from vfdata.recon.depth import SENSOR_DEPTH
 from vfdata.recon.object_frame import ObjectFrame, estimate_object_frame, origin_cut_by_view
 from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
 from vfdata.recon.tissue_frame import tissue_frame
@@ -63,8 +65,6 @@ class EngineOptions:
     # live option: its rate and accuracy against the whole image are in docs/live.md.
     depth_roi_margin_px: int = 0
 
-
-SENSOR_DEPTH = "sensor"  # the depth an RGB-D camera recorded: no depth backend runs
 
 
 @dataclass
@@ -296,19 +296,27 @@ class FrameEngine:
             self.tracker = make_tracker(self.options.tracker, first, self.options.num_points, self.options.seed,
                                         ground_truth=self.ground_truth, **self.options.tracker_options)
 
-    def step(self, index: int, stamp_ns: int, left: np.ndarray, right: np.ndarray) -> FrameResult:
-        """One stereo pair through every stage (live use)."""
-        return self.track(index, stamp_ns, left, self.image_stages(left, right, first=self.frames == 0))
+    def step(self, index: int, stamp_ns: int, left: np.ndarray, right: np.ndarray | None = None,
+             depth_mm: np.ndarray | None = None) -> FrameResult:
+        """One frame through every stage (live use): a stereo pair, or a depth camera's `depth_mm` with
+        its view as `left` and no `right` (`vfdata.rig.Frame`)."""
+        return self.track(index, stamp_ns, left, self.image_stages(left, right, self.frames == 0, depth_mm))
 
-    def run(self, pairs: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Iterator[FrameResult]:
-        """(stamp_ns, left, right) rectified pairs -> one FrameResult each, in order. The depth backend
-        sees them as a stream, so it can overlap consecutive frames (sgbm matches the next pair in a
-        second thread while this one is refined); time spent producing the pairs counts as "decode"."""
+    def run(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]
+            ) -> Iterator[FrameResult]:
+        """(stamp_ns, left, right, depth_mm) frames (`vfdata.rig.Frame`) -> one FrameResult each, in order.
+        A depth backend sees the pairs as a stream, so it can overlap consecutive frames (sgbm matches the
+        next pair in a second thread while this one is refined); with the sensor's depth (`depth`
+        'sensor') each frame's `depth_mm` is taken as it is. Time spent producing the frames counts as
+        "decode"."""
+        if self.depth is None:
+            yield from self._run_given_depth(frames)
+            return
         pending: list[tuple[int, np.ndarray, np.ndarray]] = []
 
         def feed():
             started = self.clock.now()
-            for stamp_ns, left, right in pairs:
+            for stamp_ns, left, right, _ in frames:
                 started = self.clock.add("decode", started)
                 pending.append((stamp_ns, left, right))
                 yield left, right
@@ -331,14 +339,14 @@ class FrameEngine:
             yield self.track(index, stamp_ns, left, self.image_stages(left, right, index == 0, depth))
             index += 1
 
-    def run_depth(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray]]) -> Iterator[FrameResult]:
-        """(stamp_ns, image, depth_mm) frames of a depth camera -> one FrameResult each, in order: the
-        recorded depth replaces stereo matching; `image` (H, W, 3) BGR in the depth camera's pixels
-        feeds the segmenter and the image-based trackers."""
+    def _run_given_depth(self, frames: Iterable[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]
+                         ) -> Iterator[FrameResult]:
+        """The frames of a depth camera: the recorded depth replaces stereo matching; `left` (H, W, 3) BGR
+        in the depth camera's pixels feeds the segmenter and the image-based trackers."""
         started = self.clock.now()
-        for index, (stamp_ns, image, depth_mm) in enumerate(frames):
+        for index, (stamp_ns, left, right, depth_mm) in enumerate(frames):
             self.clock.add("decode", started)
-            yield self.track(index, stamp_ns, image, self.image_stages(image, None, index == 0, depth_mm))
+            yield self.track(index, stamp_ns, left, self.image_stages(left, right, index == 0, depth_mm))
             started = self.clock.now()
 
     def finish(self) -> tuple[np.ndarray, np.ndarray] | None:

@@ -1,9 +1,10 @@
 """`vfdata process`: recording MCAP -> derived MCAP (mask, depth, tissue cloud, object frame, tracks)
 and a picture of the first frame beside it.
 
-This module only connects files to the engine (`vfdata.engine.FrameEngine`, the stages) and the
-derived layout (`vfdata.recording.derived`). Per-stage rates are kept in the derived file's metadata,
-with the torch thread count they were measured with, the cores and the load average at the end."""
+This module only connects files to the engine (`vfdata.engine.FrameEngine`, the stages; the recording's
+rig, `vfdata.rig`, builds and feeds it) and the derived layout (`vfdata.recording.derived`). Per-stage
+rates are kept in the derived file's metadata, with the torch thread count they were measured with, the
+cores and the load average at the end."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import hashlib
 import json
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -21,17 +22,14 @@ from tqdm import tqdm
 from vfdata import __version__
 from vfdata.atomic import atomic_outputs, check_output, output_os_error
 from vfdata.confidence import Confidence, ConfidenceWatch
-from vfdata.engine import SENSOR_DEPTH, EngineOptions, FrameEngine
-from vfdata.errors import InputError, VisionForceError
-from vfdata.object_frames import TUBE_FRAMES
+from vfdata.engine import EngineOptions, FrameEngine
+from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
-from vfdata.recon.object_frame import up_in_camera
 from vfdata.recon.preview import first_frame_preview
-from vfdata.recording import Recording, layout
+from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedWriter
+from vfdata.rig import rig_for
 from vfdata.threads import DEFAULT_THREADS, thread_limit
-from vfdata.tracker_kinds import IMAGE_TRACKERS, TRACKER_KINDS
-from vfdata.tracking.motion_scan import scan_stride
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
 log = logging.getLogger(__name__)
@@ -69,46 +67,6 @@ def sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def find_ground_truth(rec: Recording, given: Path | None) -> Path | None:
-    """The simulator's ground_truth/ folder: given, or beside the raw folder the recording came from."""
-    if given is not None:
-        if not Path(given).is_dir():
-            raise InputError(given, "ground-truth folder not found")
-        return Path(given)
-    source = Path(rec.metadata.source) if rec.metadata.source else None
-    if source is not None and (source / "ground_truth").is_dir():
-        return source / "ground_truth"
-    return None
-
-
-def camera_up(rec: Recording) -> np.ndarray | None:
-    """Gravity-up in the left camera frame at the first frame, from the ECM pose (None without one, or
-    when the converter had to assume the up direction of the pose's frame: a bag without gravity_up)."""
-    if not rec.has(layout.ECM_POSE) or rec.metadata.extra.get("gravity_up_assumed") == "true":
-        return None
-    _, quat = rec.ecm_pose_at(rec.frame_times_ns[:1])
-    if not np.isfinite(quat).all():
-        return None
-    return up_in_camera(quat[0], rec.metadata.gravity_up_world)
-
-
-def recording_prompt(rec: Recording, src: Path, given: str | None) -> Prompt:
-    """The first frame's tissue prompt: given, else the recording metadata's `prompt` or `prompt_box`."""
-    if given:
-        return Prompt.parse(given)
-    if rec.metadata.extra.get("prompt"):
-        return Prompt.parse(rec.metadata.extra["prompt"])
-    box = rec.metadata.extra.get("prompt_box")
-    if not box:
-        raise InputError(src, "no tissue prompt: give --prompt box:x0,y0,x1,y1 (or points:x,y;...) or a "
-                              "prompt_box in the recording's metadata")
-    try:
-        values = json.loads(box) if box.strip().startswith("[") else [float(v) for v in box.split(",")]
-        return Prompt.from_box([float(v) for v in values])
-    except (ValueError, TypeError) as exc:
-        raise InputError(src, f"prompt_box {box!r} in the metadata is not x0,y0,x1,y1 ({exc})") from None
-
-
 def prompt_text(prompt: Prompt) -> str:
     """The prompt as `Prompt.parse` reads it, e.g. "box:10,20,300,400 neg:50,60"."""
     parts = [f"box:{','.join(f'{v:g}' for v in prompt.box)}"] if prompt.box else []
@@ -116,102 +74,6 @@ def prompt_text(prompt: Prompt) -> str:
         if points:
             parts.append(f"{kind}:" + ";".join(f"{x:g},{y:g}" for x, y in points))
     return " ".join(parts)
-
-
-def stereo_engine(rec: Recording, src: Path, options: EngineOptions, prompt: str | None = None,
-                  ground_truth: Path | None = None, frames: int | None = None) -> FrameEngine:
-    """The engine for a stereo recording: its camera, baseline, prompt and gravity-up (ECM pose), and a
-    look ahead over its first `frames` frames (default all) for the tube's frame."""
-    for topic in (layout.LEFT_IMAGE, layout.RIGHT_IMAGE, layout.LEFT_INFO, layout.RIGHT_INFO):
-        if not rec.has(topic):
-            raise InputError(src, f"source has no {topic}: not a stereo recording")
-    return FrameEngine(rec.camera, rec.stereo.baseline_mm, recording_prompt(rec, src, prompt), options,
-                       up=camera_up(rec), ground_truth=ground_truth, look_ahead=lambda: scan_images(rec, frames))
-
-
-def scan_images(rec: Recording, frames: int | None = None):
-    """The left images a motion scan of the first `frames` frames looks at (vfdata.tracking.motion_scan):
-    the first, then every k-th."""
-    frames = rec.num_frames if frames is None else min(frames, rec.num_frames)
-    return (rec.rectified_left(k) for k in range(0, frames, scan_stride(frames)))
-
-
-def rgbd_options(options: EngineOptions, src: Path) -> EngineOptions:
-    """An RGB-D recording's stages: its recorded depth (no matching), the `plane` mask unless another
-    is asked for (the stereo default, colortrack, needs a colour view registered to the depth), and the
-    board frame unless the camera frame is asked for. The geometry trackers get a weak anchor to the
-    reference positions (`lambda_anchor` 1 unless given): an organ on a board stays in place and only
-    dents, and without it the points slid 3 mm along the surface over 200 frames at rest (measured on
-    the Gao et al. recording; with it 0.2 mm, and the tracked press follows Fz more closely). `klt` lifts
-    with the recorded depth (`lift=depth`): there is no right image to match in."""
-    if options.depth not in ("sgbm", SENSOR_DEPTH):
-        raise InputError(src, f"an RGB-D recording brings its depth: depth '{options.depth}' does not apply "
-                              f"(leave --depth out, or --depth {SENSOR_DEPTH})")
-    if options.object_frame in TUBE_FRAMES:
-        raise InputError(src, "the tube's object frame does not apply to an RGB-D recording of a flat organ: "
-                              "--object-frame board (default) or camera")
-    if options.tracker in IMAGE_TRACKERS:
-        log.warning(f"warning: {src}: tracker '{options.tracker}' follows the image, and an RGB-D recording's image "
-                    "here is its depth drawn as grey, whose brightness a press changes: --tracker geometry "
-                    "needs only the depth (docs/tracking.md)")
-    tracker_options = dict(options.tracker_options)
-    kind = TRACKER_KINDS.get(options.tracker)
-    for key, value in (kind.rgbd_options if kind is not None else {}).items():
-        tracker_options.setdefault(key, value)
-    if tracker_options.get("lift", "depth") != "depth":
-        raise InputError(src, f"an RGB-D recording has no right image: {options.tracker}'s lift "
-                              f"'{tracker_options['lift']}' does not apply (lift=depth)")
-    return replace(options, depth=SENSOR_DEPTH, segment="plane" if options.segment == "colortrack" else options.segment,
-                   object_frame="board" if options.object_frame == "auto" else options.object_frame,
-                   tracker_options=tracker_options)
-
-
-def rgbd_engine(rec: Recording, src: Path, options: EngineOptions, prompt: str | None = None) -> FrameEngine:
-    """The engine for an RGB-D recording: the depth camera, its recorded depth, the board frame."""
-    for topic in (layout.DEPTH_IMAGE, layout.DEPTH_INFO):
-        if not rec.has(topic):
-            raise InputError(src, f"source has no {topic}: not an RGB-D recording")
-    return FrameEngine(rec.depth_camera, 0.0, recording_prompt(rec, src, prompt), rgbd_options(options, src),
-                       up=camera_up(rec))
-
-
-def depth_view(depth_mm: np.ndarray, near_mm: float, far_mm: float) -> np.ndarray:
-    """A depth image drawn as grey BGR (near bright, unknown black): the image the segmenter, the
-    image-based trackers and the preview see when the colour view is not registered to the depth."""
-    scaled = np.nan_to_num((far_mm - depth_mm) / max(far_mm - near_mm, 1e-6), nan=0.0)
-    grey = np.clip(scaled * 255.0, 0, 255).astype(np.uint8)
-    return cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-
-
-def depth_frames(rec: Recording, frames: int):
-    """(stamp_ns, depth view, depth_mm) of the first `frames` frames of an RGB-D recording; the view's
-    grey range is the first frame's 1st-99th depth percentiles."""
-    near = far = None
-    for k in range(frames):
-        depth = rec.depth_mm(k)
-        if near is None:
-            valid = depth[np.isfinite(depth)]
-            if valid.size == 0:
-                raise InputError(rec.path, "the first depth frame has no depth")
-            near, far = (float(v) for v in np.percentile(valid, [1, 99]))
-        yield int(rec.frame_times_ns[k]), depth_view(depth, near, far), depth
-
-
-def frame_image(rec: Recording, i: int) -> np.ndarray:
-    """The BGR image processing saw of frame i: the rectified left view, or an RGB-D recording's depth
-    view (`depth_frames`' grey range)."""
-    if not rec.is_rgbd:
-        return rec.rectified_frame(i).left
-    first = rec.depth_mm(0)
-    near, far = (float(v) for v in np.percentile(first[np.isfinite(first)], [1, 99]))
-    return depth_view(rec.depth_mm(i), near, far)
-
-
-def stereo_pairs(rec: Recording, frames: int):
-    """(stamp_ns, left, right) rectified pairs of the first `frames` frames."""
-    for k in range(frames):
-        frame = rec.rectified_frame(k)
-        yield frame.stamp_ns, frame.left, frame.right
 
 
 def process_recording(src: str | Path, out: str | Path | None = None, options: ProcessOptions | None = None,
@@ -232,15 +94,12 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
     check_output(out, overwrite, inputs=[src])  # before the work: the source is never replaced
     check_output(preview_path(out), True, inputs=[src])
     rec = Recording.open(src)
+    rig = rig_for(rec, src)
     n_frames = rec.num_frames if options.max_frames is None else min(rec.num_frames, options.max_frames)
-    if rec.is_rgbd:
-        engine = rgbd_engine(rec, src, options, options.prompt)
-    else:
-        if options.object_frame == "auto":
-            options = replace(options, object_frame="tissue")
-        engine = stereo_engine(rec, src, options, options.prompt, find_ground_truth(rec, options.ground_truth),
-                               frames=n_frames)
-    results = engine.run_depth(depth_frames(rec, n_frames)) if rec.is_rgbd else engine.run(stereo_pairs(rec, n_frames))
+    rig.check()
+    prompt = rig.prompt(options.prompt)
+    engine = rig.engine(rig.stage_options(options), prompt, rig.ground_truth(options.ground_truth), look_ahead=n_frames)
+    results = engine.run(rig.frames(n_frames))
     first = None
     watch: ConfidenceWatch | None = None  # the verdict on the recording (vfdata.confidence)
     # One transaction: the MCAP and its picture (which replaces an older one) are written to temporaries
@@ -271,7 +130,7 @@ def _process(src: Path, out: Path, options: ProcessOptions, overwrite: bool, thr
             log.warning(f"warning: {src}: doubtful: {confidence.describe()}")
         if confidence.notes:
             log.warning(f"note: {src}: {confidence.describe(confidence.notes)}")
-        preview = first_frame_preview(first.left, first.mask, rec.camera, engine.frame, first.points_mm,
+        preview = first_frame_preview(first.left, first.mask, rig.camera, engine.frame, first.points_mm,
                                       engine.prompt.box, warning=("doubtful: " + ", ".join(confidence.reasons))
                                       if confidence.doubtful else ORIGIN_CUT_WARNING if engine.origin_cut else None)
         _write_png(png_tmp, preview, preview_path(out))

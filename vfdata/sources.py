@@ -12,7 +12,8 @@ at a time, each with the moment it arrived, produced by a thread of their own as
   paced at their own frame rate.
 
 Both iterate `LiveFrame`s (`for frame in source: ...`) and stop with `close()` or at the end of the
-input; an error in the producer thread is raised in the consumer's."""
+input; an error in the producer thread is raised in the consumer's. Each has its rig (`vfdata.rig`:
+`source.rig`), which knows its camera, prompt, stage defaults and live view."""
 
 from __future__ import annotations
 
@@ -26,11 +27,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from vfdata.calibration import PinholeCamera, StereoCalibration
+from vfdata.calibration import StereoCalibration
 from vfdata.errors import InputError
-from vfdata.recon import Prompt
-from vfdata.recording import Recording, layout
-from vfdata.recording.messages import CameraInfo
+from vfdata.recording import Recording
+from vfdata.rig import Frame, StereoRig, rig_for
 from vfdata.video_log import quiet_ffmpeg_log
 
 _END = object()
@@ -40,19 +40,10 @@ _END = object()
 class LiveFrame:
     index: int  # in the source's order (skipped frames of a camera leave gaps)
     stamp_ns: int
-    left: np.ndarray  # rectified BGR (RGB-D: the depth drawn as grey, vfdata.processing.depth_view)
+    left: np.ndarray  # rectified BGR (RGB-D: the depth drawn as grey, vfdata.rig.depth_view)
     right: np.ndarray | None  # None for RGB-D
     arrival_s: float  # time.perf_counter() when the camera delivered it (a replay: when it was due)
     depth_mm: np.ndarray | None = None  # RGB-D: the sensor's depth (H, W) mm, NaN unknown
-
-
-def rectified_camera_info(camera: PinholeCamera, stamp_ns: int, baseline_mm: float = 0.0,
-                          frame_id: str = layout.LEFT_FRAME) -> CameraInfo:
-    """CameraInfo of a rectified view (no distortion, identity R; P[0, 3] = -fx * baseline in m)."""
-    p = np.hstack([camera.K, np.zeros((3, 1))])
-    p[0, 3] = -camera.fx * baseline_mm / 1000.0
-    return CameraInfo(int(stamp_ns), frame_id, camera.height, camera.width, "plumb_bob", np.zeros(5), camera.K,
-                      np.eye(3), p)
 
 
 class _Producer:
@@ -121,17 +112,12 @@ class RecordingReplay:
         if speed < 0:
             raise InputError(self.path, f"replay speed must be >= 0 (0: as fast as possible), not {speed}")
         self.recording = Recording.open(self.path)
-        self.is_rgbd = self.recording.is_rgbd
-        needed = (layout.DEPTH_IMAGE, layout.DEPTH_INFO) if self.is_rgbd else (
-            layout.LEFT_IMAGE, layout.RIGHT_IMAGE, layout.LEFT_INFO, layout.RIGHT_INFO)
-        for topic in needed:
-            if not self.recording.has(topic):
-                self.recording.close()
-                raise InputError(self.path, f"source has no {topic}: not a {'RGB-D' if self.is_rgbd else 'stereo'} "
-                                            "recording")
-        self.camera = self.recording.depth_camera if self.is_rgbd else self.recording.camera
-        self.baseline_mm = 0.0 if self.is_rgbd else self.recording.stereo.baseline_mm
-        self.camera_frame_id = self.recording.camera_frame_id
+        self.rig = rig_for(self.recording, self.path)
+        try:
+            self.rig.check()
+        except InputError:
+            self.recording.close()
+            raise
         self.speed = float(speed)
         self.frames = self.recording.num_frames if max_frames is None else min(max_frames, self.recording.num_frames)
         if like_camera and self.speed == 0:
@@ -142,19 +128,10 @@ class RecordingReplay:
     def dropped(self) -> int:
         return self._producer.dropped
 
-    def decoded(self) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]]:
-        """(stamp_ns, left, right, depth_mm) of each frame as processing sees them, decoded in the
-        caller's thread and without pacing (iterating the replay itself runs the camera-like thread)."""
-        if self.is_rgbd:
-            # here, not at the top: processing pulls in torch (the tracker); a stereo source does not need it
-            from vfdata.processing import depth_frames
-
-            for stamp_ns, view, depth_mm in depth_frames(self.recording, self.frames):
-                yield stamp_ns, view, None, depth_mm
-            return
-        for i in range(self.frames):
-            frame = self.recording.rectified_frame(i)
-            yield frame.stamp_ns, frame.left, frame.right, None
+    def decoded(self) -> Iterator[Frame]:
+        """Each frame as processing sees it (`vfdata.rig.Frame`), decoded in the caller's thread and without
+        pacing (iterating the replay itself runs the camera-like thread)."""
+        return self.rig.frames(self.frames)
 
     def _produce(self, stop: threading.Event):
         times = self.recording.frame_times_ns
@@ -195,16 +172,13 @@ def _open_capture(source: str) -> cv2.VideoCapture:
 class VideoStereo:
     """Two OpenCV sources (left, right) or one side-by-side source, rectified with `calibration`."""
 
-    is_rgbd = False
-    camera_frame_id = layout.LEFT_FRAME
-
     def __init__(self, left: str, right: str | None, calibration: str | Path, side_by_side: bool = False,
                  max_frames: int | None = None):
         if (right is None) != side_by_side:
             raise InputError(Path(left), "give a right source, or --side-by-side for one source holding both views")
         self.calibration = StereoCalibration.load(calibration)
         rect = self.calibration.rectified
-        self.camera, self.baseline_mm = rect.left, rect.baseline_mm
+        self.rig = StereoRig(left, camera=rect.left, baseline_mm=rect.baseline_mm)
         self.sources = (left,) if right is None else (left, right)
         self.captures = [_open_capture(s) for s in self.sources]
         self.max_frames = max_frames
@@ -262,11 +236,3 @@ class VideoStereo:
         self._producer.close()
         for capture in self.captures:
             capture.release()
-
-
-def recording_defaults(source: RecordingReplay, prompt: str | None) -> tuple[Prompt, np.ndarray | None]:
-    """A replayed recording's prompt (given, else its metadata's) and gravity-up (its ECM pose)."""
-    # here, not at the top: processing pulls in torch (the tracker); a source alone does not need it
-    from vfdata.processing import camera_up, recording_prompt
-
-    return recording_prompt(source.recording, source.path, prompt), camera_up(source.recording)

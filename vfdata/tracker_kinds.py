@@ -16,7 +16,7 @@ class TrackerKind:
     # Follows the image texture: on an RGB-D recording the image is its depth drawn as grey, whose
     # brightness a press changes, so processing warns.
     reads_images: bool = False
-    rgbd_options: dict = field(default_factory=dict)  # defaults on RGB-D recordings (processing.rgbd_options)
+    rgbd_options: dict = field(default_factory=dict)  # defaults on RGB-D recordings (rig.RgbdRig.stage_options)
 
 
 # An organ on a board stays in place and only dents: without a weak anchor to the reference positions the

@@ -2,8 +2,8 @@
 
 `StreamingForceEstimator.push(left, right, stamp_ns)` runs the per-frame engine (`vfdata.engine`:
 depth, mask, cloud, object frame, tracking) on one rectified pair and the model on its tracks; an
-RGB-D camera's frame comes as `push(view, None, stamp_ns, depth_mm)`, its depth replacing matching
-(with the engine options of `vfdata.processing.rgbd_options`).
+RGB-D camera's frame comes as `push(view, None, stamp_ns, depth_mm)`, its depth replacing matching.
+The input's rig (`vfdata.rig`) builds the engine, with the stage defaults of its kind.
 Velocities are central differences (as in training), so frame t's force is known once frame t+1 has
 arrived: `push` returns the estimate of the previous frame (one frame of latency, 33 ms at 30
 frames/s), None on the first call. Over a whole recording the forces equal `vfmodels.predict`'s.
@@ -25,13 +25,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vfdata.calibration import PinholeCamera
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import mirror_y, relaxation_step, relaxation_weight, track_tokens
 from vfdata.confidence import Confidence, ConfidenceWatch
-from vfdata.engine import EngineOptions, FrameEngine, FrameResult, ImageStages
+from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
+from vfdata.rig import Rig
 from vfmodels.predict import history, load_force_model, model_device
 from vfmodels.regressor import ForceRegressor
 
@@ -148,21 +148,22 @@ class StreamingForceModel:
 
 
 class StreamingForceEstimator:
-    """Frame-by-frame force estimation from a live rectified stereo source (see the module docstring).
+    """Frame-by-frame force estimation from a live source (see the module docstring).
 
     `push(left, right, stamp_ns)` (BGR uint8 images) -> a `ForceEstimate` of an earlier frame, or None
     while the pipeline fills; `flush()` returns what is still in it, and the next push starts a new
     stream. `engine.clock` holds each stage's wall time and the CPU time of the thread that ran it."""
 
-    def __init__(self, ckpt: str | Path, camera: PinholeCamera, baseline_mm: float, prompt: str | Prompt,
-                 options: EngineOptions | None = None, up: np.ndarray | None = None,
+    def __init__(self, ckpt: str | Path, rig: Rig, prompt: str | Prompt, options: EngineOptions | None = None,
                  window: int | None = None, pipelined: bool = False, device: str = "cpu"):
-        """`device`: where the force model runs (the tracker's is `options.tracker_options["device"]`);
-        `window`: frames of history (None: the clip length the model was trained on; 0: the whole stream)."""
+        """`rig`: the input (a recording replayed or a camera, `vfdata.rig`); `options` get its kind's
+        defaults (`Rig.stage_options`); `device`: where the force model runs (the tracker's is
+        `options.tracker_options["device"]`); `window`: frames of history (None: the clip length the model
+        was trained on; 0: the whole stream)."""
+        self.rig, self.options = rig, rig.stage_options(options or EngineOptions())
         self.regressor, self.spec = load_force_model(ckpt, device)
-        self.camera, self.baseline_mm, self.up = camera, float(baseline_mm), up
         self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
-        self.options, self.window, self.pipelined = options or EngineOptions(), history(self.spec, window), pipelined
+        self.window, self.pipelined = history(self.spec, window), pipelined
         self._pool: ThreadPoolExecutor | None = None
         self._finished_clock = None
         self._finished_confidence: Confidence | None = None
@@ -171,7 +172,7 @@ class StreamingForceEstimator:
         self._reset()
 
     def _reset(self) -> None:
-        self.engine = FrameEngine(self.camera, self.baseline_mm, self.prompt, self.options, up=self.up)
+        self.engine = self.rig.engine(self.options, self.prompt)
         self.model: StreamingForceModel | None = None
         self.watch: ConfidenceWatch | None = None
         self.frames = 0
@@ -204,7 +205,7 @@ class StreamingForceEstimator:
     def push(self, left: np.ndarray, right: np.ndarray | None, stamp_ns: int,
              depth_mm: np.ndarray | None = None) -> ForceEstimate | None:
         """One frame: a rectified stereo pair, or an RGB-D camera's `depth_mm` (H, W) mm with its view
-        as `left` (`vfdata.processing.depth_view`) and no `right`."""
+        as `left` (`vfdata.rig.depth_view`) and no `right`."""
         t0 = time.perf_counter()
         first = self.frames == 0
         self.frames += 1

@@ -1,14 +1,14 @@
 """A live session (`vfdata live`): a stereo or RGB-D source (`vfdata.sources`) through the streaming
 estimator (`vfmodels.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
 
-Per tracked frame it serves the left image (`/stereo/left/image/compressed`, JPEG, with its rectified
-`/stereo/left/camera_info`; an RGB-D source: `/camera/depth/image`, 16UC1 mm, and its camera info, in
-the depth camera's frame), `/tissue/mask`, `/tissue/points` and `/tracking/points` (object frame, m),
-the object frame on `/tf`, and the force of each frame on `/force/estimate` as soon as it is known
-(one frame later: its velocity is a central difference; two with `pipelined`), with its band's
-half-width on `/force/estimate/band` and its distance beyond the training range on
-`/force/estimate/beyond` (N; `vfmodels.band`). The force goes first,
-the pictures after it, so drawing them never delays a force.
+Per tracked frame it serves the source rig's view (`vfdata.rig`: the left image,
+`/stereo/left/image/compressed`, JPEG, with its rectified `/stereo/left/camera_info`; an RGB-D source:
+`/camera/depth/image`, 16UC1 mm, and its camera info, in the depth camera's frame), `/tissue/mask`,
+`/tissue/points` and `/tracking/points` (object frame, m), the object frame on `/tf`, and the force of
+each frame on `/force/estimate` as soon as it is known (one frame later: its velocity is a central
+difference; two with `pipelined`), with its band's half-width on `/force/estimate/band` and its
+distance beyond the training range on `/force/estimate/beyond` (N; `vfmodels.band`). The force goes
+first, the pictures after it, so drawing them never delays a force.
 
 Latency is measured from the arrival of the frame the estimate waited for (the one after the
 estimate's own frame: the velocity's) to the moment its force was sent; `LiveStats` keeps them."""
@@ -21,7 +21,6 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from vfdata.engine import FrameResult
@@ -31,16 +30,12 @@ from vfdata.recording import layout
 from vfdata.recording.derived import (
     DERIVED_VERSION,
     cloud_message,
-    depth_message,
     mask_message,
     object_tf,
     wrench_of,
 )
-from vfdata.recording.messages import CompressedImage
-from vfdata.sources import LiveFrame, rectified_camera_info
+from vfdata.sources import LiveFrame
 from vfmodels.live import ForceEstimate, StreamingForceEstimator
-
-JPEG_QUALITY = 85
 
 
 @dataclass
@@ -133,18 +128,11 @@ class LiveSession:
 
     def _send_frame(self, result: FrameResult) -> None:
         server, stamp, frame = self.server, result.stamp_ns, self.object_frame
-        camera_frame = self.source.camera_frame_id
+        rig = self.source.rig
+        camera_frame = rig.camera_frame_id
         server.publish(layout.TF, object_tf(frame.rotation, frame.origin, stamp, camera_frame))
-        if self.source.is_rgbd:  # the sensor's depth as the drivers publish it: 16UC1 mm (REP 118)
-            if server.wants(layout.DEPTH_IMAGE):
-                server.publish(layout.DEPTH_IMAGE, depth_message(result.depth_mm, stamp, camera_frame))
-            server.publish(layout.DEPTH_INFO, rectified_camera_info(self.estimator.camera, stamp,
-                                                                    frame_id=camera_frame))
-        else:
-            if server.wants(layout.LEFT_IMAGE):
-                ok, jpeg = cv2.imencode(".jpg", result.left, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
-                server.publish(layout.LEFT_IMAGE, CompressedImage(stamp, layout.LEFT_FRAME, "jpeg", jpeg.tobytes()))
-            server.publish(layout.LEFT_INFO, rectified_camera_info(self.estimator.camera, stamp))
+        for topic, message in rig.view_messages(stamp, result.left, result.depth_mm, server.wants):
+            server.publish(topic, message)
         if server.wants(layout.TISSUE_MASK):
             server.publish(layout.TISSUE_MASK, mask_message(result.mask, stamp, camera_frame))
         if server.wants(layout.TISSUE_POINTS):
@@ -162,10 +150,10 @@ class LiveSession:
                 "band": json.dumps(None if calibration is None else calibration.to_dict())}
         if frame is not None:
             meta["object_frame"] = json.dumps(frame.to_dict())
-            meta["up_known"] = str(self.estimator.up is not None).lower()
+            meta["up_known"] = str(self.source.rig.up is not None).lower()
             meta["object_frame_kind"] = frame.kind
-            meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.estimator.up is not None)
-        meta["camera_frame_id"] = self.source.camera_frame_id
+            meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.source.rig.up is not None)
+        meta["camera_frame_id"] = self.source.rig.camera_frame_id
         confidence = self.estimator.confidence
         if confidence is not None:
             meta.update(confidence.metadata())

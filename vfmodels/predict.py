@@ -42,10 +42,11 @@ from vfdata.clips.tokens import frame_rate, mirror_y, track_tokens
 from vfdata.confidence import Confidence
 from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
-from vfdata.processing import ProcessOptions, frame_image, process_recording
+from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
+from vfdata.rig import rig_for
 from vfmodels.band import band_metrics, describe
 from vfmodels.metrics import force_metrics
 from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
@@ -282,9 +283,10 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
                           camera.width)
     origin_uv = tuple(camera.project(frame.origin[None])[0])
     times = tracks.times_ns
+    rig = rig_for(rec)
     with OverlayVideo(path, frame_rate(times)) as writer:
         for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
-            image = frame_image(rec, rec.frame_index_at(int(times[i])))
+            image = rig.image(rec.frame_index_at(int(times[i])))
             label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"
             if band_n is not None and np.isfinite(band_n[i]).all():
                 label += "  band +-" + "/".join(f"{b:.1f}" for b in band_n[i]) + " N"

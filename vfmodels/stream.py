@@ -17,7 +17,6 @@ from tqdm import tqdm
 from vfdata.confidence import Confidence
 from vfdata.engine import EngineOptions
 from vfdata.errors import OutputExistsError
-from vfdata.processing import camera_up, recording_prompt, rgbd_options
 from vfdata.recon.object_frame import x_axis_meaning
 from vfdata.recording.derived import write_force_estimate
 from vfdata.sources import RecordingReplay
@@ -43,7 +42,7 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                      progress: bool = True) -> StreamResult:
     """Feed `recording`'s frames one by one to a `StreamingForceEstimator` of `ckpt` and write
     OUT/<id>.force.mcap (/force/estimate with its band and beyond, as `predict_recording` writes;
-    OUT defaults to the recording's folder). An RGB-D recording gets the RGB-D stage defaults."""
+    OUT defaults to the recording's folder). The recording's rig gives the stage defaults of its kind."""
     out = Path(out or recording.parent)
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{recording.name.removesuffix('.mcap')}.force.mcap"
@@ -51,13 +50,10 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
         raise OutputExistsError(path)
     source = RecordingReplay(recording, speed=0.0, max_frames=max_frames)
     try:
-        rec = source.recording
-        if source.is_rgbd:
-            options = rgbd_options(options, recording)
-        estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm,
-                                            recording_prompt(rec, recording, prompt), options,
-                                            up=camera_up(rec), window=window, pipelined=pipelined, device=device)
-        n, camera_frame = source.frames, source.camera_frame_id
+        rig = source.rig
+        estimator = StreamingForceEstimator(ckpt, rig, rig.prompt(prompt), options, window=window,
+                                            pipelined=pipelined, device=device)
+        n, camera_frame = source.frames, rig.camera_frame_id
         estimates, latencies = [], []
         for stamp_ns, left, right, depth_mm in tqdm(source.decoded(), total=n, desc="stream", unit="frame",
                                                     disable=not progress):
@@ -67,7 +63,7 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
             if result is not None:
                 estimates.append(result)
         object_frame = estimator.frame
-        x_axis = x_axis_meaning(object_frame.kind, estimator.up is not None)
+        x_axis = x_axis_meaning(object_frame.kind, rig.up is not None)
         estimates += estimator.flush()
         estimator.close()
     finally:

@@ -349,6 +349,7 @@ DEPTH_BACKENDS = {
     "stereoanyvideo": StereoAnyVideoDepth,
     "recorded": RecordedDepth,
 }
+SENSOR_DEPTH = "sensor"  # the depth an RGB-D camera recorded: no depth backend runs (vfdata.rig)
 
 
 def make_depth_estimator(name: str = "sgbm", **options) -> DepthEstimator:

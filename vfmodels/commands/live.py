@@ -63,10 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def open_source(args: argparse.Namespace):
-    """(source, prompt, up) for the command's arguments."""
+    """(source, prompt) for the command's arguments; the source's rig (`source.rig`) knows the rest."""
     # here, not at the top: sources and prompts pull in OpenCV; `vfdata --help` starts without it
     from vfdata.recon import Prompt
-    from vfdata.sources import RecordingReplay, VideoStereo, recording_defaults
+    from vfdata.sources import RecordingReplay, VideoStereo
 
     if args.source.endswith(".mcap"):
         if args.right or args.side_by_side or args.calibration:
@@ -75,18 +75,18 @@ def open_source(args: argparse.Namespace):
         source = RecordingReplay(args.source, speed=args.speed, max_frames=args.max_frames,
                                  like_camera=args.like_camera)
         try:
-            prompt, up = recording_defaults(source, args.prompt)
+            prompt = source.rig.prompt(args.prompt)
         except BaseException:
             source.close()
             raise
-        return source, prompt, up
+        return source, prompt
     if args.calibration is None:
         raise InputError(Path(args.source), "a video source needs --calibration (the stereo calibration yaml)")
     if not args.prompt:
         raise InputError(Path(args.source), "a video source needs --prompt box:x0,y0,x1,y1 (the tissue in the "
                                             "first frame)")
     prompt = Prompt.parse(args.prompt)
-    return VideoStereo(args.source, args.right, args.calibration, args.side_by_side, args.max_frames), prompt, None
+    return VideoStereo(args.source, args.right, args.calibration, args.side_by_side, args.max_frames), prompt
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=None) -> int:
@@ -94,7 +94,6 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     # here, not at the top: torch, the models and foxglove; `vfdata --help` starts without them
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
-    from vfdata.processing import rgbd_options
     from vfdata.recording import layout
     from vfmodels.commands.predict import checkpoint_file, model_engine_settings
     from vfmodels.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
@@ -107,15 +106,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     settings = model_engine_settings(args, ckpt, device)  # tracked as the training recordings were
     set_threads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
-    source, prompt, up = open_source(args)
+    source, prompt = open_source(args)
     server = None
     try:
+        # with the stage defaults of the source's kind, as `vfdata process` takes them (RGB-D: the sensor's depth,
+        # the board's plane and frame; `vfdata.rig`)
         options = EngineOptions(**settings, depth_roi_margin_px=roi)
-        if source.is_rgbd:  # the sensor's depth, the board's plane and frame, as `vfdata process` does
-            options = rgbd_options(options, source.path)
-        estimator = StreamingForceEstimator(ckpt, source.camera, source.baseline_mm, prompt, options,
-                                            up=up, device=device,
-                                            window=args.window,
+        estimator = StreamingForceEstimator(ckpt, source.rig, prompt, options, device=device, window=args.window,
                                             pipelined=args.pipelined)
         server = FoxgloveServer(args.host, args.port, record=args.record, overwrite=args.overwrite)
         print(f"serving on {server.url()} (Foxglove: Open connection, Foxglove WebSocket)", file=sys.stderr,

@@ -22,6 +22,7 @@ from vfdata.lerobot.folder import is_lerobot_dataset
 from vfdata.manifest import ManifestEntry
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recording import Recording
+from vfdata.rig import rig_for
 from vfdata.threads import set_threads
 from vfmodels.experiment.variants import PROCESSINGS, derived_name
 
@@ -82,10 +83,11 @@ def convert_all(entries: list[ManifestEntry], progress: bool = True) -> float:
 
 
 def any_depth_only(entries: list[ManifestEntry]) -> bool:
-    """Whether a converted recording is RGB-D: its image trackers would see only the depth drawn as grey."""
+    """Whether a converted recording sees only depth (an RGB-D one: `Rig.depth_only`): its image trackers
+    would see the depth drawn as grey."""
     for mcap in {entry.mcap for entry in entries}:
         with Recording(mcap) as rec:
-            if rec.is_rgbd:
+            if rig_for(rec).depth_only:
                 return True
     return False
 

@@ -20,9 +20,9 @@ import numpy as np
 from vfdata.errors import InputError
 from vfdata.manifest import load_manifest
 from vfdata.metrics import coverage, force_magnitude, force_peaks, nearest_neighbour_index
-from vfdata.processing import frame_image
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
+from vfdata.rig import rig_for
 from vfdata.split_forces import beyond_training, component_coupling
 from vfdata.tracking.consistency import forward_backward_error
 from vfmodels.experiment.force_maps import depth_change, map_agreement, response_maps
@@ -154,7 +154,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
         peak = max(quality["peaks"], key=lambda r: abs(r["force_n"][2]))["frame"]
         tracks = derived.tracks()
         uv = rec.camera.project(tracks.points_camera_mm(peak))
-        plot_tracked_points(frame_image(rec, peak), {f"geometry, frame {peak}": (uv, tracks.visible[peak])},
+        plot_tracked_points(rig_for(rec).image(peak), {f"geometry, frame {peak}": (uv, tracks.visible[peak])},
                             out / "tracks_peak.png", mask=masks[peak],
                             title=f"Largest test press (Fz {force[peak, 2]:.0f} N), depth view")
     responses = stretch_responses(depths, masks, force, splits, out)

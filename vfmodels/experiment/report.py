@@ -12,10 +12,10 @@ import numpy as np
 
 from vfdata import metrics as tracking_metrics
 from vfdata.manifest import ManifestEntry, load_manifest
-from vfdata.processing import frame_image
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
+from vfdata.rig import rig_for
 from vfdata.tracker_kinds import tracker_label
 from vfdata.tracking import ground_truth_tracks
 from vfmodels.experiment.prepare import derived_path
@@ -239,7 +239,7 @@ def rate_conditions(entries: list[ManifestEntry], tracker: str) -> str:
 def first_frame(entry: ManifestEntry, tracker: str) -> np.ndarray:
     """`first_frame_preview` of a processed recording, drawn from its files."""
     with Recording.open(entry.mcap) as rec:
-        image, camera = frame_image(rec, 0), rec.camera
+        image, camera = rig_for(rec).image(0), rec.camera
     with DerivedRecording.open(derived_path(entry, tracker)) as derived:
         tracks = derived.tracks()
         return first_frame_preview(image, derived.mask(0), camera, tracks.frame, tracks.points_camera_mm(0))
@@ -289,7 +289,7 @@ def _tracked_points_figure(out: Path, test: ManifestEntry, trackers: list[str]) 
         peaks = tracking_metrics.force_peaks(np.nan_to_num(force))
         peaks = peaks[peaks < limit]
         peak = int(peaks[np.argmax(np.linalg.norm(force[peaks], axis=1))]) if len(peaks) else limit - 1
-        image, camera, mask = frame_image(rec, peak), rec.camera, derived.mask(peak)
+        image, camera, mask = rig_for(rec).image(peak), rec.camera, derived.mask(peak)
     shown = {}
     for tracker in trackers:
         if derived_path(test, tracker).is_file():
