@@ -62,6 +62,8 @@ def test_a_stereo_recording_gives_rectified_pairs_and_the_tubes_defaults(stereo)
         options = rig.stage_options(EngineOptions())
         assert (options.object_frame, options.depth, options.segment) == ("tissue", "sgbm", "colortrack")
         assert rig.stage_options(EngineOptions(object_frame="camera")).object_frame == "camera"
+        with pytest.raises(InputError, match="RGB-D camera's own"):  # a pair has no sensor depth
+            rig.stage_options(EngineOptions(depth="sensor"))
         engine = rig.engine(options, rig.prompt(None), look_ahead=4)
         assert (engine.camera, engine.baseline_mm) == (rig.camera, rig.baseline_mm)
         np.testing.assert_array_equal(engine.up, rig.up)

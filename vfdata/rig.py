@@ -217,7 +217,10 @@ class StereoRig(Rig):
         return self.rec.stereo.baseline_mm
 
     def stage_options(self, options: EngineOptions) -> EngineOptions:
-        """The tube's frame for `auto`."""
+        """The tube's frame for `auto`; a stereo pair has no sensor depth to take."""
+        if options.depth == SENSOR_DEPTH:
+            raise InputError(self.path, f"depth '{SENSOR_DEPTH}' is an RGB-D camera's own; a stereo recording's depth "
+                                        "comes from its pair (leave --depth out, or name a stereo backend)")
         return replace(options, object_frame="tissue") if options.object_frame == "auto" else options
 
     def ground_truth(self, given: Path | None) -> Path | None:
