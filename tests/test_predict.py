@@ -16,7 +16,7 @@ from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_force_band, read_force_estimate, read_tracks, write_force_estimate
 from vfmodels import ForceRegressor, SetTransformerLSTM, overlay, predict
-from vfmodels.live import StreamingForceEstimator, StreamingForceModel
+from vfmodels.inference.live import StreamingForceEstimator, StreamingForceModel
 from vfmodels.reports.figures import plot_force_series
 
 IDENTITY = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan"))
