@@ -29,9 +29,9 @@ from vfdata.recording.derived import DerivedRecording, read_force_band, read_for
 from vfdata.recording.inspect import check_file  # noqa: E402
 from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
 from vfdata.sim import synthesize  # noqa: E402
-from vfmodels import predict  # noqa: E402
 from vfmodels.commands import live  # noqa: E402
 from vfmodels.evaluation.band import BandCalibration  # noqa: E402
+from vfmodels.inference import predict  # noqa: E402
 
 FRAMES = 8
 SUBPROTOCOL = "foxglove.sdk.v1"
