@@ -1,4 +1,4 @@
-"""How sure, measured: the band of `vfmodels.band` on finished `vfdata experiment` runs (docs/results.md,
+"""How sure, measured: the band of `vfmodels.evaluation.band` on finished `vfdata experiment` runs (docs/results.md,
 "How sure").
 
 For each run folder (RESULTS/runs/<variant>/seed<k>) it takes the validation frames the band is calibrated
@@ -9,7 +9,7 @@ folder is only read). Then:
 - at the stated 90%: coverage and mean half-width per component, pooled and per test view, against the
   RMSE there; Spearman's correlation between per-view mean half-width and RMSE over every view given;
 - the calibration plot, OUT/band_calibration.png: for stated coverages 50-98% the band calibrated on
-  validation at that coverage (`vfmodels.band.calibrate`), and the share of test frames inside it, pooled
+  validation at that coverage (`vfmodels.evaluation.band.calibrate`), and the share of test frames inside it, pooled
   and per view (grey), against the diagonal.
 Writes OUT/band.json and OUT/band.md and prints the table.
 
@@ -29,8 +29,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
 
-from vfmodels.band import band_metrics, calibrate, half_width  # noqa: E402
-from vfmodels.metrics import force_metrics  # noqa: E402
+from vfmodels.evaluation.band import band_metrics, calibrate, half_width  # noqa: E402
+from vfmodels.evaluation.metrics import force_metrics  # noqa: E402
 
 STATED = (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
 
@@ -55,8 +55,8 @@ def rescore(run: Path, kept: Path) -> None:
 
     from vfdata.clips.datamodule import ForceDataModule, spec_from_checkpoint_hparams
     from vfmodels.experiment.runner import test_predictions
-    from vfmodels.regressor import ForceRegressor, read_checkpoint
-    from vfmodels.train import best_checkpoint
+    from vfmodels.training.regressor import ForceRegressor, read_checkpoint
+    from vfmodels.training.train import best_checkpoint
 
     torch.set_num_threads(1)
     summary = json.loads((run / "metrics.json").read_text())

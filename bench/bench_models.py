@@ -25,7 +25,7 @@ import yaml
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from vfmodels import ForceRegressor, SetTransformerLSTM
-from vfmodels.config_files import CONFIGS
+from vfmodels.training.config_files import CONFIGS
 
 T, N = 16, 256
 

@@ -2,7 +2,7 @@
 
     python bench/bench_pipeline.py [--recording REC.mcap] [--ckpt CKPT] [--frames 120] [--threads 2]
 
-Feeds the frames of a recording one by one to `vfmodels.live.StreamingForceEstimator` (depth, tissue
+Feeds the frames of a recording one by one to `vfmodels.inference.live.StreamingForceEstimator` (depth, tissue
 mask, tissue cloud, geometry tracking, point tokens + Set Transformer + LSTM) and prints ms/frame and
 frames/s per stage, the end-to-end rate and the per-frame latency (median, p95). Decoding the
 compressed images stands in for the camera driver and is timed separately, not in the total.
@@ -12,7 +12,7 @@ Then the live session of `vfdata live` (issue 23): the recording replayed at its
 estimator to the Foxglove server with a client subscribed to /force/estimate, with the live default
 (`LIVE_DEPTH_ROI_MARGIN_PX`), serial and pipelined: the rate forces reach the client and the latency
 from the arrival of the frame each force waited for to its sending (median, p95); beside it the
-offline rate (`vfmodels.predict.predict_recording` on the same frames, no video). Target (issue 23):
+offline rate (`vfmodels.inference.predict.predict_recording` on the same frames, no video). Target (issue 23):
 30 frames/s on 2 cores, median latency <= 70 ms, p95 <= 100 ms.
 
 Without --recording a short `mini` recording is simulated and converted into --workdir. Without
@@ -82,7 +82,7 @@ def main() -> int:
     from vfdata.engine import EngineOptions
     from vfdata.recording import Recording
     from vfdata.rig import StereoRig, camera_up, recording_prompt
-    from vfmodels.live import StreamingForceEstimator
+    from vfmodels.inference.live import StreamingForceEstimator
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -181,9 +181,9 @@ def live_and_offline(recording: Path, ckpt: Path, frames: int, args) -> None:
     from vfdata.processing import ProcessOptions
     from vfdata.recording import layout
     from vfdata.sources import RecordingReplay
-    from vfmodels.live import StreamingForceEstimator
-    from vfmodels.live_session import LiveSession
-    from vfmodels.predict import predict_recording
+    from vfmodels.inference.live import StreamingForceEstimator
+    from vfmodels.inference.live_session import LiveSession
+    from vfmodels.inference.predict import predict_recording
 
     def client(url: str, received: list) -> None:
         import json

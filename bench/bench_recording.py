@@ -200,7 +200,7 @@ def bench_record_builders() -> None:
     from mcap.data_stream import RecordBuilder
     from mcap.records import Chunk, Message, MessageIndex
 
-    from vfdata.recording.mcaprecords import CHUNK_FIELDS, MESSAGE_HEAD, MESSAGE_INDEX_HEAD, RECORD_HEAD
+    from vfdata.mcap_io.records import CHUNK_FIELDS, MESSAGE_HEAD, MESSAGE_INDEX_HEAD, RECORD_HEAD
 
     def best(f, n=5):
         times = []

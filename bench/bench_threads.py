@@ -58,7 +58,7 @@ def time_process(mcap: Path, out: Path, threads: int) -> tuple[float, float]:
 
 
 def time_fit(manifest: Path, root: Path, threads: int, epochs: int) -> float:
-    from vfmodels.train import main as train_main
+    from vfmodels.training.train import main as train_main
 
     with contextlib.redirect_stdout(io.StringIO()):
         train_main(["fit", f"--config={ROOT / 'configs' / 'proposed.yaml'}", f"--data.manifest={manifest}",

@@ -1,4 +1,4 @@
-"""Which free signal tells where the force model is wrong? A study for the band (`vfmodels.band`).
+"""Which free signal tells where the force model is wrong? A study for the band (`vfmodels.evaluation.band`).
 
 For finished `vfdata experiment` runs (a run folder: its checkpoint, its results' manifests) it computes
 per validation and test frame, with no training:
@@ -9,7 +9,7 @@ per validation and test frame, with no training:
 - `embed`: the Mahalanobis distance of the frame's embedding (`encode_frames`, the set encoder's output
   before the LSTM) from the training frames' embeddings;
 - `points`: 1 / the number of tracked points still visible (tracks thinning out).
-Then, per signal, the band calibrated on validation as `vfmodels.band.calibrate` does and judged on the
+Then, per signal, the band calibrated on validation as `vfmodels.evaluation.band.calibrate` does and judged on the
 test views: coverage and mean half-width per view, and Spearman's correlation between per-view
 half-width and RMSE over all views given. Writes OUT/signals.json and prints a table.
 
@@ -28,10 +28,10 @@ from scipy.stats import spearmanr
 
 from vfdata.clips.datamodule import ForceDataModule, spec_from_checkpoint_hparams
 from vfdata.clips.tokens import latest_clip_frames
-from vfmodels.band import band_metrics
-from vfmodels.metrics import force_metrics
-from vfmodels.regressor import ForceRegressor, read_checkpoint
-from vfmodels.train import best_checkpoint
+from vfmodels.evaluation.band import band_metrics
+from vfmodels.evaluation.metrics import force_metrics
+from vfmodels.training.regressor import ForceRegressor, read_checkpoint
+from vfmodels.training.train import best_checkpoint
 
 SIGNALS = ("none", "mirror", "turns4", "embed", "points", "force", "mirror+force", "embed+force", "turns4+force")
 
@@ -97,11 +97,11 @@ def signal_of(frames: dict, name: str) -> np.ndarray:
 
 
 def calibrate_k(error: np.ndarray, signals: np.ndarray, coverage: float = 0.9):
-    """`vfmodels.band.calibrate` for K signals: half = scale * sqrt(1 + sum_k (w_k s_k)^2), the weights
+    """`vfmodels.evaluation.band.calibrate` for K signals: half = scale * sqrt(1 + sum_k (w_k s_k)^2), the weights
     chosen on alternate 16-frame blocks among 0 and multiples of 1/median, the scale set on the others."""
     import itertools
 
-    from vfmodels.band import SIMPLER_BY, WEIGHT_STEPS, conformal_quantile
+    from vfmodels.evaluation.band import SIMPLER_BY, WEIGHT_STEPS, conformal_quantile
 
     choose = (np.arange(len(error)) // 16) % 2 == 0
     weights, scales = np.zeros((3, signals.shape[2])), np.zeros(3)

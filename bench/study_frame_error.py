@@ -1,5 +1,5 @@
 """How much an object frame's error costs the forces, per test view (docs/results.md, "The hardest view:
-`colon_s7` at 60°"). On a simulated dataset's processed recordings, `vfmodels.ridge` on VisionForce's tokens
+`colon_s7` at 60°"). On a simulated dataset's processed recordings, `vfmodels.networks.ridge` on VisionForce's tokens
 (seconds to train) is fitted and tested with each recording's tracks expressed in
 
 - `ours`: the estimated object frame (what the pipeline uses),
@@ -29,7 +29,7 @@ from vfdata.clips.tokens import tilt_about
 from vfdata.manifest import ManifestEntry, load_manifest
 from vfdata.recording.derived import DerivedRecording
 from vfmodels.experiment.ridge_run import config_spec
-from vfmodels.ridge import RidgeForceModel
+from vfmodels.networks.ridge import RidgeForceModel
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "visionforce.yaml"
 MODES = ("ours", "true", "true_rotation", "true_origin", "tilted")

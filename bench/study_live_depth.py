@@ -63,7 +63,7 @@ def main() -> int:
     from vfdata.engine import EngineOptions, recorded_depths, recorded_masks
     from vfdata.recording import Recording
     from vfdata.rig import StereoRig, camera_up, recording_prompt
-    from vfmodels.live import StreamingForceEstimator
+    from vfmodels.inference.live import StreamingForceEstimator
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)

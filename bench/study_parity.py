@@ -22,7 +22,7 @@ import numpy as np
 
 from vfdata.clips.tokens import clip_starts, segments
 from vfdata.recording.derived import read_force_estimate
-from vfmodels.metrics import force_metrics
+from vfmodels.evaluation.metrics import force_metrics
 
 
 def scored_clip_starts(times_ns: np.ndarray, clip_frames: int, stride: int) -> np.ndarray:

@@ -36,8 +36,8 @@ import numpy as np
 from vfdata.manifest import load_manifest
 from vfdata.recon.segment import mask_iou
 from vfdata.recording.derived import DerivedRecording
+from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.experiment.prepare import derived_path
-from vfmodels.metrics import force_metrics
 
 VIEWS = {"colon": 3, "glove": 4}  # test views per dataset (the presets' test recordings: 2 and 4)
 TRACKER = {"visionforce": "klt", "ridge": "klt", "proposed": "geometry"}

@@ -309,7 +309,7 @@ LAMBDAS = np.logspace(-5, 2, 8)
 
 
 def metrics(pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
-    """RMSE (3,) and R^2 (3,) pooled over frames, as vfmodels.metrics.force_metrics."""
+    """RMSE (3,) and R^2 (3,) pooled over frames, as vfmodels.evaluation.metrics.force_metrics."""
     ok = np.isfinite(true).all(1)
     pred, true = pred[ok], true[ok]
     se = ((pred - true) ** 2).sum(0)

@@ -30,8 +30,8 @@ from vfdata.conversion.bag_topics import BagTopics
 from vfdata.conversion.bags import convert_bag
 from vfdata.conversion.raw_folder import ConvertOptions
 from vfdata.errors import InputError, OutputExistsError
+from vfdata.mcap_io.cdr import CdrError
 from vfdata.recording import layout
-from vfdata.recording.cdr import CdrError
 from vfdata.recording.inspect import check_file
 from vfdata.recording.messages import (
     PoseStamped,

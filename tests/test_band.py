@@ -1,4 +1,4 @@
-"""The calibrated band of every force (`vfmodels.band`): split-conformal scaling states its coverage,
+"""The calibrated band of every force (`vfmodels.evaluation.band`): split-conformal scaling states its coverage,
 training calibrates it on validation and the checkpoint carries it, the test and the experiment's
 report give its coverage per view."""
 
@@ -16,7 +16,7 @@ from lightning.pytorch.callbacks import EMAWeightAveraging
 from vfdata.errors import InputError
 from vfdata.split_forces import training_range
 from vfmodels import ForceRegressor, SetTransformerLSTM
-from vfmodels.band import (
+from vfmodels.evaluation.band import (
     BandCalibration,
     band_metrics,
     beyond_range,

@@ -182,7 +182,7 @@ def test_our_errors_cross_process_boundaries_whole():
                   OutputError("d.mcap", "disk full")):
         again = pickle.loads(pickle.dumps(error))
         assert type(again) is type(error) and str(again) == str(error) and again.path == error.path
-    from vfdata.recording.mcapfile import CorruptChunkError
+    from vfdata.mcap_io.file import CorruptChunkError
 
     chunk = pickle.loads(pickle.dumps(CorruptChunkError("e.mcap", 1024, ["/tf"], "fails its CRC")))
     assert chunk.chunk_offset == 1024 and chunk.topics == ["/tf"] and "byte 1024" in str(chunk)

@@ -171,8 +171,8 @@ def test_canonical_side_mirrors_a_recording_seen_from_its_other_flank(tmp_path):
     # target exactly gives the sensor's force as both prediction and truth.
     from types import SimpleNamespace
 
-    from vfmodels.prediction_writer import PredictionCollector
-    from vfmodels.regressor import ForceRegressor
+    from vfmodels.training.prediction_writer import PredictionCollector
+    from vfmodels.training.regressor import ForceRegressor
 
     collector = PredictionCollector()
     trainer = SimpleNamespace(world_size=1, is_global_zero=True)

@@ -140,7 +140,7 @@ def test_the_tracker_and_force_model_on_cuda_agree_with_the_cpu():
     from test_predict import _regressor, _tracks
 
     from vfdata.clips.spec import ClipSpec
-    from vfmodels import predict
+    from vfmodels.inference import predict
 
     points, visible = _tracks(frames=20)
     reg = _regressor()

@@ -1,5 +1,5 @@
 """An installed package (a wheel, not `pip install -e`) runs the main job from any folder: everything the
-commands read ships inside the packages (the model configs: `vfmodels.config_files`).
+commands read ships inside the packages (the model configs: `vfmodels.training.config_files`).
 
 The slow test builds a wheel from the tree, installs it into a fresh virtual environment (which borrows
 the big dependencies, torch and the rest, from this one through a .pth file instead of installing them
@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from vfdata.errors import InputError
-from vfmodels.config_files import CONFIGS, config_path
 from vfmodels.experiment.variants import ALL_VARIANTS
+from vfmodels.training.config_files import CONFIGS, config_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,7 +89,7 @@ def test_a_wheel_installed_into_a_fresh_environment_runs_the_quickstart_from_ano
 
     work = tmp_path / "elsewhere"  # no source tree here or above
     work.mkdir()
-    where = _run([str(python), "-c", "import vfdata, vfmodels.config_files as c; print(vfdata.__file__); "
+    where = _run([str(python), "-c", "import vfdata, vfmodels.training.config_files as c; print(vfdata.__file__); "
                                      "print(c.config_path('visionforce'))"], cwd=work).stdout.split()
     assert all(Path(p).is_relative_to(site) for p in where), where
     quick = _run([str(env_dir / "bin" / "vfdata"), "quickstart", "qs"], cwd=work)

@@ -29,9 +29,9 @@ from vfdata.recording.derived import DerivedRecording, read_force_band, read_for
 from vfdata.recording.inspect import check_file  # noqa: E402
 from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
 from vfdata.sim import synthesize  # noqa: E402
-from vfmodels import predict  # noqa: E402
-from vfmodels.band import BandCalibration  # noqa: E402
 from vfmodels.commands import live  # noqa: E402
+from vfmodels.evaluation.band import BandCalibration  # noqa: E402
+from vfmodels.inference import predict  # noqa: E402
 
 FRAMES = 8
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -329,7 +329,7 @@ def test_velocities_of_a_stream_that_skips_frames_stay_per_second():
     from test_predict import _tracks
 
     from vfdata.clips.spec import ClipSpec
-    from vfmodels.live import StreamingForceModel, skipped_frame_rate
+    from vfmodels.inference.live import StreamingForceModel, skipped_frame_rate
 
     assert skipped_frame_rate(30.0, np.array([0, 33_333_333, 66_666_667])) == 30.0
     assert skipped_frame_rate(30.0, np.array([0, 36_000_000, 70_000_000])) == 30.0  # jitter

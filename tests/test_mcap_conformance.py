@@ -18,8 +18,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 from mcap_variants import variants
 
+from vfdata.mcap_io.file import McapFile
 from vfdata.recording import Recording
-from vfdata.recording.mcapfile import McapFile
 
 VARIANTS = {v.name: v for v in variants()}
 

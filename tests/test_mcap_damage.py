@@ -20,9 +20,9 @@ from rawfixtures import FRAME_NS, T0_NS, calibration, frames
 
 from vfdata.conversion.raw_folder import camera_infos, stereo_tf
 from vfdata.errors import FormatError
+from vfdata.mcap_io.records import FOOTER_SIZE, MAGIC, RECORD_HEAD, iter_records
 from vfdata.recording import CorruptChunkError, McapWriter, Recording, layout
 from vfdata.recording.inspect import check_file
-from vfdata.recording.mcaprecords import FOOTER_SIZE, MAGIC, RECORD_HEAD, iter_records
 from vfdata.recording.messages import CompressedImage, PoseStamped, WrenchStamped
 
 pytestmark = pytest.mark.timeout(60)

@@ -3,7 +3,7 @@ input scale the backbone sees through ForceRegressor, and a tiny overfit judged 
 (the two checks that would have caught the 14,786 N RGB baseline: 0-255 inputs normalised as if 0-1,
 and BatchNorm running averages far from the batch statistics after a few optimiser steps).
 
-The backbones (vfmodels.backbones) against torchvision's r3d_18 and timm's vit_small_patch16_224:
+The backbones (vfmodels.networks.backbones) against torchvision's r3d_18 and timm's vit_small_patch16_224:
 same parameter names and shapes, same outputs with the same weights; those tests run only where
 the two packages are installed (not in the CPU-only set-up), the rest needs neither."""
 
@@ -16,7 +16,7 @@ from torch import nn
 
 from vfdata.errors import BackendError
 from vfmodels import DepthViTLSTM, ForceRegressor, RGBResNet3D
-from vfmodels.backbones import R3D18, ViTSmall16, adapt_vit_state
+from vfmodels.networks.backbones import R3D18, ViTSmall16, adapt_vit_state
 
 
 def make_image_clips(clips: int = 4, frames: int = 8, size: int = 32, seed: int = 0,

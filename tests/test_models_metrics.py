@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 
-from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
+from vfmodels.evaluation.metrics import force_metrics, format_table, grouped_force_metrics
 
 
 def test_force_metrics_by_hand():

@@ -10,7 +10,7 @@ from torch.utils.data import DataLoader
 
 from vfdata.errors import InputError
 from vfmodels import ForceRegressor, SetTransformerLSTM
-from vfmodels.band import BandCalibration
+from vfmodels.evaluation.band import BandCalibration
 
 
 def trainer(tmp_path, epochs, **kw):
@@ -148,7 +148,7 @@ def test_load_errors(tmp_path):
 def test_symmetry_views_make_predictions_equivariant(turns):
     # Averaging over a group of views makes any network equivariant under that group: the mirror across
     # XZ (and the quarter turns about Z) of the tokens gives the same map of the forces.
-    from vfmodels.regressor import symmetry_views
+    from vfmodels.training.regressor import symmetry_views
 
     torch.manual_seed(0)
     model = SetTransformerLSTM(in_features=6, dim=16, heads=2, inducing_points=4, isab_blocks=1, lstm_hidden=8)

@@ -5,7 +5,7 @@ import torch
 import torch.nn.functional as F
 from clip_fixtures import single_thread  # noqa: F401 - autouse fixture
 
-from vfmodels.set_transformer import InducedSetAttentionBlock, MultiheadAttentionBlock, SetTransformerLSTM
+from vfmodels.networks.set_transformer import InducedSetAttentionBlock, MultiheadAttentionBlock, SetTransformerLSTM
 
 
 @pytest.fixture

@@ -29,9 +29,9 @@ from vfdata.recording import Recording
 from vfdata.recording.derived import read_force_band, read_force_estimate, read_tracks
 from vfdata.sim import synthesize
 from vfmodels import ForceRegressor, SetTransformerLSTM
-from vfmodels.band import BandCalibration
+from vfmodels.evaluation.band import BandCalibration
+from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.experiment.runner import test_predictions as experiment_test
-from vfmodels.metrics import force_metrics
 
 FRAMES = 20  # clips of 16 frames every 4: frames 0-15 and 19 are scored from the clip that ends on them
 SPEC = {"input": "tracks", "frame": "object", "features": "polar_z_disp_vel", "clip_frames": 16, "stride": 4,

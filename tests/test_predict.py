@@ -15,8 +15,9 @@ from vfdata.errors import InputError, VisionForceError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_force_band, read_force_estimate, read_tracks, write_force_estimate
-from vfmodels import ForceRegressor, SetTransformerLSTM, overlay, predict
-from vfmodels.live import StreamingForceEstimator, StreamingForceModel
+from vfmodels import ForceRegressor, SetTransformerLSTM
+from vfmodels.inference import overlay, predict
+from vfmodels.inference.live import StreamingForceEstimator, StreamingForceModel
 from vfmodels.reports.figures import plot_force_series
 
 IDENTITY = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan"))
@@ -324,6 +325,22 @@ def test_load_force_model_reads_the_clip_spec_and_checks_features(tmp_path):
         predict.load_force_model(mismatch)
     with pytest.raises(InputError, match="checkpoint not found"):
         predict.load_force_model(tmp_path / "missing.ckpt")
+
+
+@pytest.mark.parametrize("class_path", ["vfmodels.set_transformer.SetTransformerLSTM", "vfmodels.SetTransformerLSTM"])
+def test_checkpoints_saved_before_the_subpackages_still_load(tmp_path, class_path):
+    """Checkpoints name their model by class path; those saved when the networks sat at vfmodels' top
+    (`vfmodels.set_transformer`) load as they did, with the same forces."""
+    reg = _regressor()
+    ckpt = _save_checkpoint(reg, tmp_path / "old.ckpt")
+    state = torch.load(ckpt, weights_only=True)
+    assert state["force_model"]["class_path"] == "vfmodels.networks.set_transformer.SetTransformerLSTM"
+    state["force_model"]["class_path"] = class_path
+    torch.save(state, ckpt)
+    loaded, _ = predict.load_force_model(ckpt)
+    points, visible = _tracks(frames=10)
+    np.testing.assert_allclose(_forces(loaded, ClipSpec(), points, visible), _forces(reg, ClipSpec(), points, visible),
+                               rtol=1e-5)
 
 
 @pytest.mark.parametrize("class_path, init_args", [

@@ -463,7 +463,7 @@ def test_every_record_written_is_the_mcap_librarys_own(raw, tmp_path):
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from vfdata.recording.mcaprecords import MAGIC, record_bytes
+    from vfdata.mcap_io.records import MAGIC, record_bytes
 
     out = _convert(raw, tmp_path / "rec.mcap", chunk_size=16 * 1024)
     data = out.read_bytes()

@@ -1,4 +1,4 @@
-"""The ridge rung (vfmodels.ridge) and the attribution ladder's variants and table."""
+"""The ridge rung (vfmodels.networks.ridge) and the attribution ladder's variants and table."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from vfdata.manifest import load_manifest
 from vfmodels.experiment import report, runner
 from vfmodels.experiment.ridge_run import config_spec
 from vfmodels.experiment.variants import ALL_VARIANTS, LADDER, LADDER_MODELS, LADDER_RUNGS
-from vfmodels.ridge import RidgeForceModel, pooled_moments, with_lags
+from vfmodels.networks.ridge import RidgeForceModel, pooled_moments, with_lags
 
 
 def test_pooled_moments_and_lags():
@@ -80,7 +80,7 @@ def test_ladder_table(tmp_path):
 def test_visionforce_feature_ablations_build_a_model_for_their_tokens(name):
     """The ablations of the project's pipeline parse through the LightningCLI with their overrides, and
     the network's input width matches the tokens the spec makes (3 channels each)."""
-    from vfmodels.train import make_cli
+    from vfmodels.training.train import make_cli
 
     variant = ALL_VARIANTS[name]
     cli = make_cli([f"--config={runner.CONFIGS / variant.config}", "--trainer.accelerator=cpu",

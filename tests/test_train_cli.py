@@ -17,7 +17,7 @@ from clip_fixtures import single_thread  # noqa: E402, F401 - autouse fixture
 
 import train  # noqa: E402
 from vfdata.errors import InputError  # noqa: E402
-from vfmodels.train import best_checkpoint  # noqa: E402
+from vfmodels.training.train import best_checkpoint  # noqa: E402
 
 SYNTHETIC = [
     "--model.model=vfmodels.SetTransformerLSTM", "--model.model.in_features=6",
@@ -28,7 +28,7 @@ SYNTHETIC = [
 
 def _fit(args: list[str]):
     """train.py fit in-process (what `train.main` runs): the finished CLI, to look at its trainer and model."""
-    from vfmodels.train import make_cli
+    from vfmodels.training.train import make_cli
 
     return make_cli(["fit", *args])
 
@@ -88,7 +88,7 @@ def test_fit_then_test_and_predict_best(tmp_path, capsys):
     assert (tmp_path / "run" / "csv" / "version_0" / "metrics.csv").is_file()
     assert list((tmp_path / "run" / "tb" / "version_0").glob("events.out.tfevents.*"))
     state = torch.load(ckpts[0], weights_only=True)
-    assert state["force_model"]["class_path"] == "vfmodels.set_transformer.SetTransformerLSTM"
+    assert state["force_model"]["class_path"] == "vfmodels.networks.set_transformer.SetTransformerLSTM"
 
     best = best_checkpoint(tmp_path / "run" / "checkpoints")
     assert best in ckpts
@@ -155,7 +155,7 @@ def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path)
 
     from vfdata.clips.dataset import ForceClipDataset
     from vfdata.clips.tokens import latest_clip_frames
-    from vfmodels.regressor import ForceRegressor
+    from vfmodels.training.regressor import ForceRegressor
 
     for rid, frames in (("a", 24), ("b", 20), ("c", 20)):
         write_recording(tmp_path, rid, frame_times(frames), tracker="klt")
@@ -312,8 +312,8 @@ def test_patience_null_runs_every_epoch(tmp_path):
 @pytest.mark.parametrize("config, enabled", [("proposed.yaml", True), ("visionforce.yaml", False)])
 def test_early_stopping_follows_the_checkpoint_monitor(config, enabled, tmp_path):
     """visionforce keeps its last averaged weights (no monitor): it runs every epoch; proposed stops early."""
-    from vfmodels.early_stopping import ValidationEarlyStopping
-    from vfmodels.train import make_cli
+    from vfmodels.training.early_stopping import ValidationEarlyStopping
+    from vfmodels.training.train import make_cli
 
     cli = make_cli([f"--config={ROOT / 'configs' / config}", f"--trainer.default_root_dir={tmp_path}",
                     "--trainer.accelerator=cpu", "--data.manifest=datasets/mini.manifest.yaml"], run=False)
@@ -332,7 +332,7 @@ def test_a_failed_fit_leaves_no_empty_run_folders(tmp_path):
 
 
 def test_run_eta():
-    from vfmodels.progress import format_seconds, run_eta
+    from vfmodels.training.progress import format_seconds, run_eta
 
     assert run_eta(10.0, 1, 0.0, 4) == pytest.approx(30.0)
     assert run_eta(15.0, 1, 0.5, 4) == pytest.approx(25.0)

@@ -1,7 +1,7 @@
 """The per-frame engine of the method: stereo pair (or a depth camera's frame) -> depth -> tissue mask
 -> tissue cloud -> (first frame: object frame, reference points) -> tracked points. `vfdata process`
-(offline, into a derived MCAP), `vfmodels.predict` (offline, in memory) and the live estimator
-(`vfmodels.live`, one frame at a time) all drive this one engine. Its input, a recording or a camera,
+(offline, into a derived MCAP), `vfmodels.inference.predict` (offline, in memory) and the live estimator
+(`vfmodels.inference.live`, one frame at a time) all drive this one engine. Its input, a recording or a camera,
 is a rig (`vfdata.rig`): the rig builds the engine and gives the frames.
 
     engine = rig.engine(rig.stage_options(EngineOptions()), rig.prompt(None))

@@ -1,7 +1,9 @@
-"""Force models and everything built on them, in the order data flows: the networks
-(`set_transformer`, `baselines`, `decoder`, `registry`), the LightningModule that trains any of
-them (`regressor`), training (`train`: the LightningCLI behind train.py), prediction (`predict`,
-`live`, `overlay`, `prediction_writer`), experiments (`experiment/`) and reports (`reports/`).
+"""Force models and everything built on them, in the order data flows: the networks (`networks/`:
+`set_transformer`, `baselines`, `decoder`, `ridge`, `registry`), how good and how sure an estimate is
+(`evaluation/`: `metrics`, `band`), training (`training/`: the LightningModule that trains any network,
+`regressor`, and `train`, the LightningCLI behind train.py, with its callbacks), estimation with a
+trained model (`inference/`: `predict`, `live`, `stream`, `live_session`, `overlay`), experiments
+(`experiment/`), reports (`reports/`) and the model commands of `vfdata` (`commands/`).
 
 The model classes load on first use (`vfmodels.SetTransformerLSTM`, ...), so that command-line tools
 can read the variant registry without importing torch."""
@@ -12,12 +14,12 @@ __all__ = ["DepthViTLSTM", "ForceRegressor", "RGBResNet3D", "SetTransformerLSTM"
            "grouped_force_metrics"]
 
 _WHERE = {
-    "DepthViTLSTM": "vfmodels.baselines",
-    "RGBResNet3D": "vfmodels.baselines",
-    "SetTransformerLSTM": "vfmodels.set_transformer",
-    "ForceRegressor": "vfmodels.regressor",
-    "force_metrics": "vfmodels.metrics",
-    "grouped_force_metrics": "vfmodels.metrics",
+    "DepthViTLSTM": "vfmodels.networks.baselines",
+    "RGBResNet3D": "vfmodels.networks.baselines",
+    "SetTransformerLSTM": "vfmodels.networks.set_transformer",
+    "ForceRegressor": "vfmodels.training.regressor",
+    "force_metrics": "vfmodels.evaluation.metrics",
+    "grouped_force_metrics": "vfmodels.evaluation.metrics",
 }
 
 

@@ -52,7 +52,7 @@ class ForceDataModule(L.LightningDataModule):
 
     The training split's statistics are `normalisation` (for `ForceRegressor`), its forces' range per
     component as training sees them (augmentation included) `force_range` ((low, high) N: the band's
-    "beyond training" mark, `vfmodels.band`), and the spec with
+    "beyond training" mark, `vfmodels.evaluation.band`), and the spec with
     the measured frame rate is saved with every checkpoint (`datamodule_hyper_parameters["spec"]`),
     so prediction makes the same tokens.
     """
@@ -128,7 +128,7 @@ class ForceDataModule(L.LightningDataModule):
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
-        # training recordings were tracked (vfmodels.predict.trained_tracker).
+        # training recordings were tracked (vfmodels.inference.predict.trained_tracker).
         tracker = self.training_tracker
         return {"tracker": tracker} if tracker else {}
 

@@ -32,7 +32,7 @@ from rosbags.highlevel import AnyReader
 from vfdata.conversion.bag_access import BLOCK, HEAD_BYTES, INDEX_BLOCK, IndexedBag, in_bag_order
 from vfdata.conversion.bag_sqlite import SqliteBag
 from vfdata.errors import InputError
-from vfdata.recording.mcaprecords import (
+from vfdata.mcap_io.records import (
     CHUNK_FIELDS,
     INDEX_PAIR,
     MESSAGE_FIELDS,
@@ -267,7 +267,7 @@ def ros2_storage(path: Path) -> tuple[str, list[Path]] | None:
     return kind, [path / Path(name).name for name in info["relative_file_paths"]]
 
 
-# MCAP: the record layout is `vfdata.recording.mcaprecords`' (one definition, checked against
+# MCAP: the record layout is `vfdata.mcap_io.records`' (one definition, checked against
 # `mcap.records`). Only uncompressed chunks are read here, whose records follow a head of fixed size.
 _MCAP_CHUNK_FIXED = chunk_head_size("")
 _MCAP_MESSAGE_FIXED = MESSAGE_FIELDS  # a message record's fields before its data

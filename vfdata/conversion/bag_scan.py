@@ -31,7 +31,7 @@ from vfdata.conversion.bag_topics import IMAGE, POSE_STAMPED, RGBD_DEPTH, WRENCH
 from vfdata.conversion.image_messages import ImageHead, ImageMessage, image_head
 from vfdata.conversion.ros_images import DEPTH_ENCODINGS, RAW_ENCODINGS, UnsupportedImage, compressed_to_bgr
 from vfdata.errors import InputError, VisionForceError
-from vfdata.recording.cdr import CdrError
+from vfdata.mcap_io.cdr import CdrError
 from vfdata.recording.messages import (
     MAX_STAMP_NS,
     NS_PER_S,

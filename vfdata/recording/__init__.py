@@ -1,6 +1,7 @@
-"""The MCAP layer: ROS 2 schemas and CDR, the layout, the writer, the reader, info and check."""
+"""The VisionForce layout on MCAP (`vfdata.mcap_io`): the layout, its ROS 2 schemas and messages, the
+writer, the reader, the derived recording, info and check."""
 
-from vfdata.recording.mcapfile import CorruptChunkError
+from vfdata.mcap_io.file import CorruptChunkError
 from vfdata.recording.reader import ForceSeries, PoseSeries, Recording, StereoFrame, TopicInfo
 from vfdata.recording.writer import McapWriter
 

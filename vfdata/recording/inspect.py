@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from vfdata.errors import VisionForceError
+from vfdata.mcap_io.records import crc32
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedMeta
-from vfdata.recording.mcaprecords import crc32
 from vfdata.recording.reader import FORCE_GAP_TOLERANCE_NS, Recording
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vfdata.recording.cdr import CdrError, CdrReader, CdrWriter
+from vfdata.mcap_io.cdr import CdrError, CdrReader, CdrWriter
 
 NS_PER_S = 1_000_000_000  # ROS time is (sec, nanosec); vfdata's stamps are int ns
 # The last stamp a ROS 2 header holds (int32 seconds); stamps of the layout lie in 0 .. MAX_STAMP_NS.

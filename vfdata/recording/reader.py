@@ -4,7 +4,7 @@ It reads any MCAP whose channels use the layout's ROS 2 schemas (CDR), whoever w
 are the left image's MCAP log times, which the layout requires to equal `header.stamp`; force and
 pose times are their messages' `header.stamp` (acquisition time).
 
-Damage is never served silently: a chunk that fails its checks (`mcapfile`) raises a
+Damage is never served silently: a chunk that fails its checks (`vfdata.mcap_io.file`) raises a
 `CorruptChunkError` when its messages are read, unless the file is opened with `damaged="skip"` or
 `damaged="serve"`; a payload that is not what its topic's type says raises a `FormatError` naming the
 file, the topic and the message."""
@@ -21,9 +21,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from vfdata.calibration import PinholeCamera, RectifiedStereo
 from vfdata.errors import FormatError
+from vfdata.mcap_io.cdr import CdrError
+from vfdata.mcap_io.file import McapFile
 from vfdata.recording import layout
-from vfdata.recording.cdr import CdrError
-from vfdata.recording.mcapfile import McapFile
 from vfdata.recording.messages import (
     CameraInfo,
     CompressedImage,

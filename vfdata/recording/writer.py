@@ -4,7 +4,7 @@
 CRCs, the data-section CRC, and a summary (with its CRC) holding schemas, channels, statistics,
 chunk and metadata indexes and summary offsets. Records go through `mcap.records`' builders, except
 the three the converters write at the rate of their messages, whose bytes are packed here (layout
-from `mcaprecords`, checked against the library; tests compare them byte for byte): message records,
+from `vfdata.mcap_io.records`, checked against the library; tests compare them byte for byte): message records,
 chunk record heads and message indexes. What `mcap.writer.Writer` cannot do, and the converters need:
 
 - per-chunk compression: chunks of JPEG/PNG images do not compress (ratio 1.00003), so the
@@ -42,8 +42,7 @@ from mcap.records import (
 
 from vfdata import __version__
 from vfdata.atomic import atomic_output
-from vfdata.recording import layout
-from vfdata.recording.mcaprecords import (
+from vfdata.mcap_io.records import (
     CHUNK_FIELDS,
     MAGIC,
     MESSAGE_FIELDS,
@@ -55,6 +54,7 @@ from vfdata.recording.mcaprecords import (
     crc32,
     record_bytes,
 )
+from vfdata.recording import layout
 from vfdata.recording.schemas import schema_text
 
 # Large enough that a stereo JPEG pair and a few hundred force samples share a chunk; small enough

@@ -96,8 +96,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfdata.recording import layout
     from vfmodels.commands.predict import checkpoint_file, model_engine_settings
-    from vfmodels.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
-    from vfmodels.live_session import LiveSession
+    from vfmodels.inference.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
+    from vfmodels.inference.live_session import LiveSession
 
     import_foxglove()  # the missing extra is said before anything else is opened
     device = resolve_device(args.device, "frames")  # the tracker and the model, one frame at a time

@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def checkpoint_file(path: Path) -> Path:
     """A .ckpt file as given, or the best checkpoint of a run folder (its checkpoints/)."""
-    from vfmodels.train import best_checkpoint  # Lightning: loaded by the commands that run, not by --help
+    from vfmodels.training.train import best_checkpoint  # Lightning: loaded by the commands that run, not by --help
 
     if path.is_dir():
         return best_checkpoint(path / "checkpoints" if (path / "checkpoints").is_dir() else path)
@@ -61,7 +61,7 @@ def checkpoint_file(path: Path) -> Path:
 def model_engine_settings(args: argparse.Namespace, ckpt: Path, device: str) -> dict:
     """The pipeline flags' EngineOptions fields, the tracker (and its options under the given ones) taken
     from the checkpoint unless --tracker names one: the tracks the model was trained on (predict and live)."""
-    from vfmodels.predict import prediction_tracker  # here, not at the top: torch
+    from vfmodels.inference.predict import prediction_tracker  # here, not at the top: torch
 
     tracker, tracker_options = prediction_tracker(ckpt, device, args.tracker)
     settings = {**engine_settings(args), "tracker": tracker}
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if args.stream:
         return _stream(args, settings)
     from vfdata.processing import ProcessOptions
-    from vfmodels.predict import predict_recording
+    from vfmodels.inference.predict import predict_recording
 
     options = ProcessOptions(**settings, prompt=args.prompt, max_frames=args.max_frames, threads=args.threads)
     result = predict_recording(args.recording, args.ckpt, args.out, options, window=args.window,
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
 def _stream(args: argparse.Namespace, settings: dict) -> int:
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.engine import EngineOptions
-    from vfmodels.stream import stream_recording
+    from vfmodels.inference.stream import stream_recording
 
     result = stream_recording(args.recording, args.ckpt, args.out, EngineOptions(**settings), prompt=args.prompt,
                               window=args.window,

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from vfdata.clips.datamodule import random_parts
-from vfmodels.metrics import force_metrics
+from vfmodels.evaluation.metrics import force_metrics
 
 ALPHAS = tuple(10.0 ** np.arange(-2, 7))
 FEATURE_SIZE = 32
@@ -76,7 +76,7 @@ def fit_ridge(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_val
 
 
 def per_component_metrics(pred_n: np.ndarray, true_n: np.ndarray) -> dict[str, float]:
-    """RMSE, NRMSE and R² per component (vfmodels.metrics) plus MAE per component and overall (N)."""
+    """RMSE, NRMSE and R² per component (vfmodels.evaluation.metrics) plus MAE per component and overall (N)."""
     out = force_metrics(pred_n, true_n)
     mae = np.abs(np.asarray(pred_n) - np.asarray(true_n)).mean(axis=0)
     for comp, value in zip(("fx", "fy", "fz"), mae, strict=True):

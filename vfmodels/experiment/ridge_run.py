@@ -1,4 +1,4 @@
-"""A ridge variant's run (`Variant.kind == "ridge"`): the clip spec of its config, `vfmodels.ridge` fitted
+"""A ridge variant's run (`Variant.kind == "ridge"`): the clip spec of its config, `vfmodels.networks.ridge` fitted
 on the training split (strengths chosen on validation), the test frames written like a network's run."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from vfdata.errors import InputError
 from vfdata.manifest import load_manifest
 from vfmodels.experiment.runs import write_run
 from vfmodels.experiment.variants import Variant
-from vfmodels.ridge import RidgeForceModel
+from vfmodels.networks.ridge import RidgeForceModel
 
 
 def config_spec(config: Path, overrides: tuple[str, ...] = ()) -> ClipSpec:

@@ -5,8 +5,8 @@
 Steps (docs/experiments.md):
 1. Prepare (`prepare`): convert and process every recording, once per tracker the variants need; a
    manifest per tracker is written to `OUT/manifests/`.
-2. Train and test each variant x seed through the project's LightningCLI (`vfmodels.train`) with the
-   variant's config from the package's configs (`vfmodels.config_files`; the tree's `configs/`): best
+2. Train and test each variant x seed through the project's LightningCLI (`vfmodels.training.train`) with the
+   variant's config from the package's configs (`vfmodels.training.config_files`; the tree's `configs/`): best
    checkpoint by validation loss, then `trainer.predict` over the test split. Each run folder
    `OUT/runs/<variant>/seed<k>/` gets `predictions.npz` (test frames: recording, orientation_deg,
    frame_time_ns, pred (M, 3) N, true (M, 3) N) and `metrics.json`. A run with a metrics.json is
@@ -37,15 +37,15 @@ from vfdata.manifest import Manifest, load_manifest, write_manifest
 from vfdata.recording.derived import read_confidence
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
 from vfdata.threads import set_threads
-from vfmodels.config_files import CONFIGS
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
 from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
 from vfmodels.experiment.runs import run_folder, write_run
 from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant, for_depth_only
-from vfmodels.prediction_writer import PredictionCollector
-from vfmodels.regressor import ForceRegressor
-from vfmodels.train import adopt_normalisation, best_checkpoint, make_cli
+from vfmodels.training.config_files import CONFIGS
+from vfmodels.training.prediction_writer import PredictionCollector
+from vfmodels.training.regressor import ForceRegressor
+from vfmodels.training.train import adopt_normalisation, best_checkpoint, make_cli
 
 # Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
 PAPER_PROTOCOL = ("--early_stopping.patience=null",)

@@ -36,7 +36,7 @@ class Variant:
     tracker: str = "geometry"  # a key of PROCESSINGS: which derived files it reads
     table: str = "II"
     overrides: tuple[str, ...] = ()  # extra LightningCLI arguments, e.g. "--data.spec.source=ground_truth"
-    kind: str = "network"  # "network" (LightningCLI) or "ridge" (vfmodels.ridge on the config's tokens)
+    kind: str = "network"  # "network" (LightningCLI) or "ridge" (vfmodels.networks.ridge on the config's tokens)
 
 
 # The project's own pipeline, the default for users: the paper's network on deformation tokens with the

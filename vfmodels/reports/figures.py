@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 from scipy.stats import gaussian_kde  # noqa: E402
 
-from vfmodels.metrics import COMPONENTS  # noqa: E402
+from vfmodels.evaluation.metrics import COMPONENTS  # noqa: E402
 from vfmodels.reports.tables import check_predictions, training_summary  # noqa: E402
 
 

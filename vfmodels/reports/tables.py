@@ -8,7 +8,7 @@ standard deviation across test orientations (also averaged over seeds; "n/a" wit
 the CSV keeps the spread across seeds as well.
 
 Band table (`band_markdown`): per model and test orientation, the stated 90% band's coverage and mean
-half-width against the RMSE there (`vfmodels.band`).
+half-width against the RMSE there (`vfmodels.evaluation.band`).
 
 Tracking table (Table III): coverage and NNI at force peaks per tracker; with simulator ground truth
 also the 3D tracking error (median / 95th percentile, mm) split along and across the surface normal.
@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
-from vfmodels.band import grouped_band_metrics
-from vfmodels.metrics import COMPONENTS, grouped_force_metrics
+from vfmodels.evaluation.band import grouped_band_metrics
+from vfmodels.evaluation.metrics import COMPONENTS, grouped_force_metrics
 
 METRICS = (("rmse", "RMSE (N)"), ("nrmse", "NRMSE"), ("r2", "R²"))
 COLUMNS = (("fx", "Fx"), ("fy", "Fy"), ("fz", "Fz"), ("", "Avg"))
@@ -56,8 +56,8 @@ def check_predictions(predictions: Mapping[str, np.ndarray], where: str = "predi
 
 def run_metrics(predictions: Mapping[str, np.ndarray]) -> dict:
     """Metrics of one run from its test frames: {"pooled", "mean", "std", "groups"} as
-    `vfmodels.metrics.grouped_force_metrics`, grouped by orientation (deg); with "band" when the frames
-    carry a calibrated band (`vfmodels.band.grouped_band_metrics`: coverage and mean half-width)."""
+    `vfmodels.evaluation.metrics.grouped_force_metrics`, grouped by orientation (deg); with "band" when the frames
+    carry a calibrated band (`vfmodels.evaluation.band.grouped_band_metrics`: coverage and mean half-width)."""
     check_predictions(predictions)
     known = np.isfinite(predictions["true"]).all(axis=1) & np.isfinite(predictions["pred"]).all(axis=1)
     orientation = np.asarray(predictions["orientation_deg"], dtype=np.float64)[known]

@@ -1,8 +1,8 @@
 """The paper's two image baselines, with the same output as the proposed model: forces (B, T, 3) per
 frame in normalised units.
 
-- `RGBResNet3D`: a 3D ResNet-18 (R3D-18, `vfmodels.backbones.R3D18`) on monocular (left) RGB clips.
-- `DepthViTLSTM`: a ViT-Small/16 (`vfmodels.backbones.ViTSmall16`, one input channel) per frame on the
+- `RGBResNet3D`: a 3D ResNet-18 (R3D-18, `vfmodels.networks.backbones.R3D18`) on monocular (left) RGB clips.
+- `DepthViTLSTM`: a ViT-Small/16 (`vfmodels.networks.backbones.ViTSmall16`, one input channel) per frame on the
   tissue-masked depth image, then the same causal LSTM and heads as the proposed model.
 
 The paper starts both from pretrained weights. Those cannot be downloaded here, so each model takes
@@ -21,8 +21,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from vfdata.errors import BackendError
-from vfmodels.backbones import R3D18, ViTSmall16, adapt_vit_state
-from vfmodels.decoder import CausalForceDecoder, ForceHeads
+from vfmodels.networks.backbones import R3D18, ViTSmall16, adapt_vit_state
+from vfmodels.networks.decoder import CausalForceDecoder, ForceHeads
 
 # Kinetics-400 statistics that torchvision's pretrained r3d_18 weights expect (RGB, in [0, 1]).
 KINETICS_MEAN = (0.43216, 0.394666, 0.37645)

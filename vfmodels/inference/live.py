@@ -6,7 +6,7 @@ RGB-D camera's frame comes as `push(view, None, stamp_ns, depth_mm)`, its depth 
 The input's rig (`vfdata.rig`) builds the engine, with the stage defaults of its kind.
 Velocities are central differences (as in training), so frame t's force is known once frame t+1 has
 arrived: `push` returns the estimate of the previous frame (one frame of latency, 33 ms at 30
-frames/s), None on the first call. Over a whole recording the forces equal `vfmodels.predict`'s.
+frames/s), None on the first call. Over a whole recording the forces equal `vfmodels.inference.predict`'s.
 
 `pipelined=True` runs the image stages (depth, mask, cloud) of frame t in a worker thread while the
 calling thread tracks frame t-1 and runs the model (OpenCV, NumPy and PyTorch release the GIL): on two
@@ -32,8 +32,8 @@ from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfdata.rig import Rig
-from vfmodels.predict import history, load_force_model, model_device
-from vfmodels.regressor import ForceRegressor
+from vfmodels.inference.predict import history, load_force_model, model_device
+from vfmodels.training.regressor import ForceRegressor
 
 # The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
 # only in the previous mask's box grown by this many pixels. On the simulated mini recording it cut

@@ -4,7 +4,7 @@
 mask, cloud, object frame, tracks: `vfdata.engine`), keeps the derived recording beside its outputs,
 turns the tracks into forces with the trained model, and writes
 - `<id>.force.mcap`: `/force/estimate` (WrenchStamped in the object frame `tissue_object`, N), beside it
-  `/force/estimate/band` (the half-width of each component's calibrated 90% band, N: `vfmodels.band`)
+  `/force/estimate/band` (the half-width of each component's calibrated 90% band, N: `vfmodels.evaluation.band`)
   and `/force/estimate/beyond` (how far each component lies beyond the training forces' range, N), and
   the object frame on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
 - `<id>.force.png`: Fx, Fy, Fz against the frame index, the band shaded and frames beyond training
@@ -47,11 +47,11 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
-from vfmodels.band import band_metrics, describe
-from vfmodels.metrics import force_metrics
-from vfmodels.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
-from vfmodels.regressor import Estimate, ForceRegressor, read_checkpoint
+from vfmodels.evaluation.band import band_metrics, describe
+from vfmodels.evaluation.metrics import force_metrics
+from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.reports.figures import plot_force_series
+from vfmodels.training.regressor import Estimate, ForceRegressor, read_checkpoint
 
 # ---- the model -----------------------------------------------------------------------------------
 
@@ -68,7 +68,7 @@ def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegres
         raise InputError(ckpt, f"the model was trained on '{spec.input}' inputs, not tracked points")
     if not regressor.causal:
         raise InputError(ckpt, f"{type(regressor.model).__name__} does not run frame by frame (no encode_frames/"
-                               "decode_frames: vfmodels/regressor.py says what a model implements)")
+                               "decode_frames: vfmodels/training/regressor.py says what a model implements)")
     if regressor.model.config.get("in_features", spec.channels) != spec.channels:
         raise InputError(ckpt, f"model takes {regressor.model.config['in_features']} features per point, its "
                                f"clip spec gives {spec.channels} ({spec.features})")
@@ -184,7 +184,7 @@ class PredictResult:
     up_known: bool
     x_axis: str  # what the object frame's X is (vfdata.recon.object_frame.x_axis_meaning)
     metrics: dict[str, float] | None = None  # against the recording's force sensor, as Table I (none without)
-    band: str = ""  # the model's band calibration in words (vfmodels.band.describe)
+    band: str = ""  # the model's band calibration in words (vfmodels.evaluation.band.describe)
     band_metrics: dict[str, float] | None = None  # coverage and half-width against the sensor (none without)
     frames_beyond: int = 0  # frames with a component beyond the training range
     confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)

@@ -89,7 +89,7 @@ def _self_check() -> None:
           and MESSAGE_INDEX_HEAD.unpack_from(index) == (Opcode.MESSAGE_INDEX, len(index) - 9, 3, INDEX_PAIR)
           and struct.unpack_from("<QQ", index, MESSAGE_INDEX_HEAD.size) == (11, 12))
     if not ok:
-        raise ImportError("vfdata.recording.mcaprecords disagrees with the installed mcap package's records")
+        raise ImportError("vfdata.mcap_io.records disagrees with the installed mcap package's records")
 
 
 _self_check()

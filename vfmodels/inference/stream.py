@@ -20,7 +20,7 @@ from vfdata.errors import OutputExistsError
 from vfdata.recon.object_frame import x_axis_meaning
 from vfdata.recording.derived import write_force_estimate
 from vfdata.sources import RecordingReplay
-from vfmodels.live import StreamingForceEstimator
+from vfmodels.inference.live import StreamingForceEstimator
 
 
 @dataclass

@@ -9,7 +9,7 @@ N, `orientation_deg` (B,), `recording` list[str], `frame_time_ns` (B, T) int64.
 Models: an `nn.Module` with `forward(x, valid) -> (B, T, 3)` in normalised units, attributes
 `input_key`, `channel_dim` (the input's feature axis, which the input statistics apply to) and
 `config` (its constructor arguments as plain values, stored in checkpoints); registered in
-`vfmodels.registry.MODELS` so that a checkpoint can name it. That is enough for `train.py` (fit, test,
+`vfmodels.networks.registry.MODELS` so that a checkpoint can name it. That is enough for `train.py` (fit, test,
 predict) and `vfdata experiment`.
 
 Frame by frame (`vfdata predict`, `--stream`, `vfdata live`), a model also needs the causal interface,
@@ -20,7 +20,7 @@ which `SetTransformerLSTM` implements for reference:
 - `forward(x, valid) == decode_frames(encode_frames(x, valid))[0]`.
 Nobody calls them directly: `ForceRegressor.encode_frames` / `decode_frames` add the normalisation and
 the symmetry views, so that every caller gets the forces the test scores, and beside them the band of
-each force (`Estimate`, `vfmodels.band`), calibrated on the validation split. A model without them (the
+each force (`Estimate`, `vfmodels.evaluation.band`), calibrated on the validation split. A model without them (the
 image baselines: a 3D convolution looks both ways in time) trains and tests, and prediction refuses it
 in one line.
 """
@@ -40,9 +40,9 @@ from torch import nn
 from vfdata.clips.tokens import latest_clip_frames, turn_about_z
 from vfdata.errors import InputError
 from vfdata.weights import load_weights
-from vfmodels import band
-from vfmodels.metrics import force_metrics, format_table, grouped_force_metrics
-from vfmodels.registry import build_model, class_path
+from vfmodels.evaluation import band
+from vfmodels.evaluation.metrics import force_metrics, format_table, grouped_force_metrics
+from vfmodels.networks.registry import build_model, class_path
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
 COMPILED_PREFIX = "_compiled."
@@ -50,7 +50,7 @@ COMPILED_PREFIX = "_compiled."
 
 class Estimate(NamedTuple):
     """What the model says of each frame, every tensor (..., 3) in N in the object frame: the force (the
-    mean over the symmetry views), the half-width of its band (`vfmodels.band`: force +- band_n covers the
+    mean over the symmetry views), the half-width of its band (`vfmodels.evaluation.band`: force +- band_n covers the
     calibration's stated share of frames; NaN without a calibration) and the views' spread (the band's
     signal: their population std, 0 with one view)."""
 
@@ -69,7 +69,7 @@ class ForceRegressor(L.LightningModule):
 
     `compile_model=True` runs the model through `torch.compile` (state-dict keys are unchanged).
 
-    The band (`vfmodels.band`): `band_calibration`, set at the end of every validation epoch from that
+    The band (`vfmodels.evaluation.band`): `band_calibration`, set at the end of every validation epoch from that
     epoch's validation frames (split-conformal scaling of the symmetry views' spread), with the training
     forces' range from `trainer.datamodule.force_range`; saved in every checkpoint (`force_model.band`)
     and restored with it. None (no validation, too few frames): every band is NaN.
@@ -224,7 +224,7 @@ class ForceRegressor(L.LightningModule):
 
     def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
         """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each
-        (`vfmodels.band.half_width`); NaN without a calibration."""
+        (`vfmodels.evaluation.band.half_width`); NaN without a calibration."""
         calibration = self.band_calibration
         if calibration is None:
             return torch.full_like(spread_n, float("nan"))
@@ -234,7 +234,7 @@ class ForceRegressor(L.LightningModule):
 
     def beyond_range(self, force_n: np.ndarray) -> np.ndarray:
         """How far (N, signed, 0 inside) each component of forces (..., 3) lies beyond the training forces'
-        range (`vfmodels.band.beyond_range`); zeros when the calibration does not know the range."""
+        range (`vfmodels.evaluation.band.beyond_range`); zeros when the calibration does not know the range."""
         calibration = self.band_calibration
         force_n = np.asarray(force_n, dtype=np.float64)
         if calibration is None or calibration.train_min_n is None:
@@ -343,7 +343,7 @@ class ForceRegressor(L.LightningModule):
         self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"])
 
     def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray) -> None:
-        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.band.calibrate`), with the
+        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.evaluation.band.calibrate`), with the
         training range when it is known (kept from the calibration it replaces otherwise)."""
         calibration = band.calibrate(pred_n, true_n, spread_n)
         train_range = self._train_range
@@ -399,7 +399,7 @@ class ForceRegressor(L.LightningModule):
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
         """A trained regressor from a checkpoint file alone, in eval mode. The file is read as data
-        (`weights_only=True`) and may name only a model of `vfmodels.registry`. Pretrained-weight
+        (`weights_only=True`) and may name only a model of `vfmodels.networks.registry`. Pretrained-weight
         files named in the model config are not needed: the checkpoint has the weights."""
         path = Path(path)
         checkpoint = read_checkpoint(path)

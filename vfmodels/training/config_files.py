@@ -5,8 +5,8 @@ experiment`, `vfdata quickstart` from any folder); the source tree's `configs/` 
 so `python train.py fit --config configs/visionforce.yaml` reads the same files (one copy, nothing to
 keep in step). Where an installed package keeps them:
 
-    python -m vfmodels.config_files              # the folder
-    python -m vfmodels.config_files visionforce  # one config's path
+    python -m vfmodels.training.config_files              # the folder
+    python -m vfmodels.training.config_files visionforce  # one config's path
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ class PredictionCollector(BasePredictionWriter):
     """Per-frame predictions of a `trainer.predict` run, available as `frames` after it: recording
     (M,) str, orientation_deg (M,), frame_time_ns (M,) int64, pred (M, 3) N, true (M, 3) N (NaN where
     the batches had no measured force), band (M, 3) N (the half-width of each component's band, NaN
-    without a calibration) and spread (M, 3) N (its signal: `vfmodels.regressor.Estimate`), sorted by
+    without a calibration) and spread (M, 3) N (its signal: `vfmodels.training.regressor.Estimate`), sorted by
     recording and time."""
 
     def __init__(self) -> None:

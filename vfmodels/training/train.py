@@ -30,16 +30,16 @@ from torch import nn
 from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--data.help ForceDataModule` resolves
 from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
-from vfmodels.checkpoint import ResumableCheckpoint
-from vfmodels.cli_errors import ForceArgumentParser
-from vfmodels.early_stopping import ValidationEarlyStopping
-from vfmodels.epoch_timer import EpochTimer
-from vfmodels.prediction_writer import ForceEstimateWriter
-from vfmodels.progress import RunProgressBar
-from vfmodels.quiet import quiet_lightning
-from vfmodels.registry import MODELS, class_path
-from vfmodels.regressor import ForceRegressor, read_checkpoint
-from vfmodels.run_folder import closing_line, remove_new_entries, run_entries
+from vfmodels.networks.registry import MODELS, class_path
+from vfmodels.training.checkpoint import ResumableCheckpoint
+from vfmodels.training.cli_errors import ForceArgumentParser
+from vfmodels.training.early_stopping import ValidationEarlyStopping
+from vfmodels.training.epoch_timer import EpochTimer
+from vfmodels.training.prediction_writer import ForceEstimateWriter
+from vfmodels.training.progress import RunProgressBar
+from vfmodels.training.quiet import quiet_lightning
+from vfmodels.training.regressor import ForceRegressor, read_checkpoint
+from vfmodels.training.run_folder import closing_line, remove_new_entries, run_entries
 
 DESCRIPTION = ("VisionForce: train, test and run the force models (Set Transformer-LSTM on tracked tissue "
                "points, and the baselines) on processed recordings; configs in configs/, docs in docs/models.md.")
@@ -139,7 +139,7 @@ def check_checkpoint_fits(ckpt_path: str | Path, regressor: ForceRegressor) -> N
 
 
 def _config_network(model_config) -> nn.Module | None:
-    """The network a parsed config's `model.model` builds, when it is one of `vfmodels.registry`'s (None
+    """The network a parsed config's `model.model` builds, when it is one of `vfmodels.networks.registry`'s (None
     otherwise: the check then waits for the CLI to build it). Pretrained-weight files are not read."""
     network = getattr(model_config, "model", None)
     name = str(getattr(network, "class_path", "")).rpartition(".")[2]
@@ -304,5 +304,5 @@ def main(args: list[str] | None = None) -> None:
         sys.exit(1)
 
 
-if __name__ == "__main__":  # `python -m vfmodels.train ...`: train.py for an installed package
+if __name__ == "__main__":  # `python -m vfmodels.training.train ...`: train.py for an installed package
     main()

@@ -1,5 +1,5 @@
 """A live session (`vfdata live`): a stereo or RGB-D source (`vfdata.sources`) through the streaming
-estimator (`vfmodels.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
+estimator (`vfmodels.inference.live`) to a Foxglove WebSocket server (`vfdata.foxglove_server`), frame by frame.
 
 Per tracked frame it serves the source rig's view (`vfdata.rig`: the left image,
 `/stereo/left/image/compressed`, JPEG, with its rectified `/stereo/left/camera_info`; an RGB-D source:
@@ -7,7 +7,7 @@ Per tracked frame it serves the source rig's view (`vfdata.rig`: the left image,
 `/tissue/points` and `/tracking/points` (object frame, m), the object frame on `/tf`, and the force of
 each frame on `/force/estimate` as soon as it is known (one frame later: its velocity is a central
 difference; two with `pipelined`), with its band's half-width on `/force/estimate/band` and its
-distance beyond the training range on `/force/estimate/beyond` (N; `vfmodels.band`). The force goes
+distance beyond the training range on `/force/estimate/beyond` (N; `vfmodels.evaluation.band`). The force goes
 first, the pictures after it, so drawing them never delays a force.
 
 Latency is measured from the arrival of the frame the estimate waited for (the one after the
@@ -35,7 +35,7 @@ from vfdata.recording.derived import (
     wrench_of,
 )
 from vfdata.sources import LiveFrame
-from vfmodels.live import ForceEstimate, StreamingForceEstimator
+from vfmodels.inference.live import ForceEstimate, StreamingForceEstimator
 
 
 @dataclass

@@ -20,8 +20,8 @@ from mcap.records import Channel as ChannelRecord
 from mcap.records import ChunkIndex, Footer, Header, Metadata, MetadataIndex, Schema, Statistics
 
 from vfdata.errors import FormatError
-from vfdata.recording.mcapindex import COMPRESSIONS, Channel, Chunk, McapIndex, MessageLocations, merge_locations
-from vfdata.recording.mcaprecords import (
+from vfdata.mcap_io.index import COMPRESSIONS, Channel, Chunk, McapIndex, MessageLocations, merge_locations
+from vfdata.mcap_io.records import (
     CHUNK_FIELDS,
     DATA_END_SIZE,
     FOOTER_SIZE,
@@ -39,7 +39,7 @@ from vfdata.recording.mcaprecords import (
 
 
 class McapSource(Protocol):
-    """What the index builder reads a file through (`vfdata.recording.mcapfile.McapFile` is one): its
+    """What the index builder reads a file through (`vfdata.mcap_io.file.McapFile` is one): its
     path and size in bytes, bytes at an offset, and a chunk's records checked against its CRC."""
 
     path: Path

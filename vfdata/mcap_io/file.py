@@ -18,9 +18,9 @@ import numpy as np
 import zstandard
 
 from vfdata.errors import FormatError
-from vfdata.recording.index_builder import build_index, scan_chunk_records
-from vfdata.recording.mcapindex import Chunk, MessageLocations, merge_locations
-from vfdata.recording.mcaprecords import (
+from vfdata.mcap_io.index import Chunk, MessageLocations, merge_locations
+from vfdata.mcap_io.index_builder import build_index, scan_chunk_records
+from vfdata.mcap_io.records import (
     CHUNK_FIELDS,
     MESSAGE_FIELDS,
     MESSAGE_HEAD,

@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from vfmodels.decoder import CausalForceDecoder
+from vfmodels.networks.decoder import CausalForceDecoder
 
 
 class MultiheadAttentionBlock(nn.Module):
@@ -109,7 +109,7 @@ class SetTransformerLSTM(nn.Module):
     a one-layer unidirectional LSTM and three independent heads (Fx, Fy, Fz). The output is invariant
     to the order of the N points and causal in time (frame t sees frames <= t only).
 
-    The reference implementation of the causal interface (`vfmodels.regressor`): `encode_frames` (each
+    The reference implementation of the causal interface (`vfmodels.training.regressor`): `encode_frames` (each
     frame on its own) and `decode_frames` (the LSTM, carrying its state), which prediction and the live
     estimator run through `ForceRegressor`.
 

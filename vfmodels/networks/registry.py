@@ -9,8 +9,8 @@ from pathlib import Path
 from torch import nn
 
 from vfdata.errors import InputError
-from vfmodels.baselines import DepthViTLSTM, RGBResNet3D
-from vfmodels.set_transformer import SetTransformerLSTM
+from vfmodels.networks.baselines import DepthViTLSTM, RGBResNet3D
+from vfmodels.networks.set_transformer import SetTransformerLSTM
 
 MODELS: dict[str, type[nn.Module]] = {cls.__name__: cls for cls in (SetTransformerLSTM, RGBResNet3D, DepthViTLSTM)}
 
