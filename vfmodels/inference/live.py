@@ -83,8 +83,8 @@ class StreamingForceModel:
         self.state = None  # the temporal model's, when the window is the whole stream
         self.first: tuple[np.ndarray, np.ndarray] | None = None  # the first frame: mirror side, subset
         self.reference: np.ndarray | None = None  # each point's first visible position (displacements)
-        self.average: np.ndarray | None = None  # the relaxation's average of each point's displacement
-        self.averages: deque = deque(maxlen=3)  # of the frames in `recent`
+        # the relaxation's average of each point's displacement at the frames in `recent` (the last: now)
+        self.averages: deque = deque(maxlen=3)
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray
              ) -> tuple[int, np.ndarray, np.ndarray] | None:
@@ -98,8 +98,8 @@ class StreamingForceModel:
         if "relax" in self.spec.features:  # stepped through every frame, as over a whole recording
             ok = visible & np.isfinite(points).all(axis=1) & np.isfinite(self.reference).all(axis=1)
             rate = skipped_frame_rate(self.spec.fps or 30.0, np.array(self.stamps, dtype=np.int64))
-            self.average = relaxation_step(self.average, points - self.reference, ok, relaxation_weight(rate))
-            self.averages.append(self.average)
+            last = self.averages[-1] if self.averages else None
+            self.averages.append(relaxation_step(last, points - self.reference, ok, relaxation_weight(rate)))
         if self.first is None:
             self.first = (points, visible)
             return None
@@ -120,7 +120,7 @@ class StreamingForceModel:
         self.stamps.clear()
         self.embeddings.clear()
         self.averages.clear()
-        self.state = self.first = self.reference = self.average = None
+        self.state = self.first = self.reference = None
         return result
 
     @torch.no_grad()
