@@ -5,7 +5,8 @@ For each run folder (RESULTS/runs/<variant>/seed<k>) it takes the validation fra
 on and the test frames it is judged on: from the run's validation.npz and predictions.npz when they carry
 the views' spread (runs made since the band), else by running the run's checkpoint again over its
 validation and test clips (`vfmodels.experiment.runner.test_predictions`, into OUT/rescored/; the run's
-folder is only read). Then:
+folder is only read; a checkpoint from before the band's stretch takes its embedding reference from the
+run's training clips, as training now does). Then:
 - at the stated 90%: coverage and mean half-width per component, pooled and per test view, against the
   RMSE there; Spearman's correlation between per-view mean half-width and RMSE over every view given;
 - the calibration plot, OUT/band_calibration.png: for stated coverages 50-98% the band calibrated on
@@ -29,7 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.stats import spearmanr  # noqa: E402
 
-from vfmodels.evaluation.band import band_metrics, calibrate, half_width  # noqa: E402
+from vfmodels.evaluation.band import band_metrics, calibrate, half_width, stretch  # noqa: E402
 from vfmodels.evaluation.metrics import force_metrics  # noqa: E402
 
 STATED = (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98)
@@ -40,7 +41,7 @@ def frames_of(run: Path, out: Path) -> tuple[dict, dict]:
     val_path, test_path = run / "validation.npz", run / "predictions.npz"
     if val_path.is_file() and test_path.is_file():
         val, test = dict(np.load(val_path)), dict(np.load(test_path))
-        if "spread" in val and "spread" in test:
+        if "distance" in val and "distance" in test:
             return val, test
     name = "_".join(run.parts[-5:-3] + run.parts[-2:])
     kept = out / "rescored" / name
@@ -55,7 +56,8 @@ def rescore(run: Path, kept: Path) -> None:
 
     from vfdata.clips.datamodule import ForceDataModule, spec_from_checkpoint_hparams
     from vfmodels.experiment.runner import test_predictions
-    from vfmodels.training.regressor import ForceRegressor, read_checkpoint
+    from vfmodels.training.checkpoint import read_checkpoint
+    from vfmodels.training.regressor import REFERENCE_CLIPS, ForceRegressor
     from vfmodels.training.train import best_checkpoint
 
     torch.set_num_threads(1)
@@ -67,6 +69,8 @@ def rescore(run: Path, kept: Path) -> None:
     data = ForceDataModule(str(manifest), spec, batch_size=8, cache_dir=str(kept.parent / "cache"), progress=False)
     data.setup("fit")
     data.setup("test")
+    if regressor.causal and regressor.embedding_mean.numel() == 0:  # a run from before the stretch
+        regressor.take_embedding_reference(data.reference_dataloader(REFERENCE_CLIPS))
     validation, _ = test_predictions(regressor, data.val_dataloader())
     test, _ = test_predictions(regressor, data.test_dataloader())
     kept.mkdir(parents=True, exist_ok=True)
@@ -74,12 +78,15 @@ def rescore(run: Path, kept: Path) -> None:
     np.savez_compressed(kept / "predictions.npz", **test)
 
 
-def band_for(val: dict, test: dict, coverage: float) -> np.ndarray:
-    """The test frames' half-widths (M, 3) N of the band calibrated on `val` at `coverage`."""
+def band_for(val: dict, test: dict, coverage: float, stretched: bool = True) -> np.ndarray:
+    """The test frames' half-widths (M, 3) N of the band calibrated on `val` at `coverage`, stretched by
+    their embedding distance as the model does (`stretched`)."""
     known = np.isfinite(val["true"]).all(axis=1)
-    c = calibrate(val["pred"][known], val["true"][known], val["spread"][known], coverage)
-    return half_width(test["spread"], np.abs(test["pred"]), np.array(c.scale), np.array(c.weight),
+    c = calibrate(val["pred"][known], val["true"][known], val["spread"][known], coverage,
+                  distance=val["distance"][known] if stretched else None)
+    half = half_width(test["spread"], np.abs(test["pred"]), np.array(c.scale), np.array(c.weight),
                       np.array(c.force_weight))
+    return half * stretch(test["distance"], c.distance_ref)[:, None] if stretched else half
 
 
 def views_of(test: dict) -> list[tuple[str, float]]:
@@ -90,6 +97,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", type=Path, nargs="+")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--no-stretch", dest="stretched", action="store_false",
+                        help="the band without its stretch by the embedding distance (as before 2026-12-05)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows, curves = [], {"pooled": [], "views": []}
@@ -98,7 +107,7 @@ def main() -> int:
         known = np.isfinite(test["true"]).all(axis=1)
         test = {k: v[known] for k, v in test.items()}
         label = "/".join(run.parts[-5:-3])
-        band = band_for(val, test, 0.9)
+        band = band_for(val, test, 0.9, args.stretched)
         val_rmse = force_metrics(val["pred"], val["true"])["rmse"]
         for rec, angle in [("pooled", None), *views_of(test)]:
             rows_of = np.ones(len(test["true"]), bool) if angle is None else \
@@ -110,7 +119,7 @@ def main() -> int:
                          **{k: f[k] for k in ("rmse", "rmse_fx", "rmse_fy", "rmse_fz")}})
         pooled_curve, view_curves = [], {}
         for p in STATED:
-            b = band_for(val, test, p)
+            b = band_for(val, test, p, args.stretched)
             pooled_curve.append(band_metrics(test["pred"], test["true"], b)["coverage"])
             for rec, angle in views_of(test):
                 r = (test["recording"].astype(str) == rec) & (test["orientation_deg"] == angle)

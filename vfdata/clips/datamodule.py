@@ -10,7 +10,7 @@ from typing import Any, Literal
 import lightning.pytorch as L
 import numpy as np
 import torch
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Subset
 
 from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
@@ -169,6 +169,15 @@ class ForceDataModule(L.LightningDataModule):
 
     def predict_dataloader(self) -> DataLoader:
         return self._loader(self.predict_split, shuffle=False)
+
+    def reference_dataloader(self, clips: int) -> DataLoader:
+        """At most `clips` training clips, evenly spread over the split and made as training makes them
+        (augmented), in one pass without workers: the frames a model's familiarity is measured against
+        (`vfmodels.evaluation.familiarity`)."""
+        train = self.dataset("train")
+        chosen = np.unique(np.linspace(0, len(train) - 1, min(clips, len(train))).astype(np.int64))
+        return DataLoader(Subset(train, chosen.tolist()), batch_size=self.batch_size, shuffle=False,
+                          num_workers=0, collate_fn=collate_clips)
 
 
 def spec_from_checkpoint_hparams(hparams: dict[str, Any], where: Path) -> ClipSpec:

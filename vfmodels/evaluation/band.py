@@ -18,7 +18,13 @@ the frames that set the scale would not: on 30 frames the band then held 88%, te
 fewer than `MIN_SPLIT_FRAMES` frames the band is constant, its scale from all of them.
 
 On views the model has not learnt the errors are larger than validation's, at the training view, and
-the band covers less than it states: docs/results.md, "How sure", measures by how much.
+the band covers less than it states: docs/results.md, "How sure", measures by how much. A third signal
+speaks for them: how unlike the training frames a frame's input is, the Mahalanobis distance of its
+embedding (the set encoder's output, `ForceRegressor.embedding_distance`) from the training frames'. It
+cannot be calibrated on validation, where frames are as familiar as training's, so it is a rule, not a
+weight: the band is stretched by `stretch` = max(1, distance / `distance_ref`), `distance_ref` the median
+distance of the validation frames. Validation's own band hardly changes (half its frames are not stretched,
+the rest a little); a frame twice as far from training as validation's typical one gets twice the band.
 
 Beyond what training covered a model extrapolates, and no calibration on validation speaks for it:
 `beyond_range` says how far (N) each component of an estimate lies outside the training forces' range
@@ -54,7 +60,9 @@ class BandCalibration:
     """A band's calibration (module docstring): per component `scale` (N), `weight` (of the views' spread)
     and `force_weight` (of |F|) (1/N); the `coverage` it states, the validation `frames` it was
     calibrated on, and the training forces' range (`train_min_n`, `train_max_n`, N per component; None
-    when unknown). Plain values: it is stored in checkpoints (`ForceRegressor.on_save_checkpoint`)."""
+    when unknown), and `distance_ref`, the validation frames' median embedding distance that `stretch`
+    measures a frame's against (None: no stretch). Plain values: it is stored in checkpoints
+    (`ForceRegressor.on_save_checkpoint`)."""
 
     scale: tuple[float, float, float]
     weight: tuple[float, float, float]
@@ -63,6 +71,7 @@ class BandCalibration:
     frames: int = 0
     train_min_n: tuple[float, float, float] | None = None
     train_max_n: tuple[float, float, float] | None = None
+    distance_ref: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
@@ -82,9 +91,13 @@ class BandCalibration:
         coverage = values.get("coverage", COVERAGE)
         if not isinstance(coverage, (int, float)) or not 0 < coverage < 1:
             raise ValueError(f"band calibration: coverage {coverage!r} is not a share between 0 and 1")
+        distance_ref = values.get("distance_ref")
+        if distance_ref is not None and (not isinstance(distance_ref, (int, float)) or isinstance(distance_ref, bool)
+                                         or not 0 < distance_ref < math.inf):
+            raise ValueError(f"band calibration: distance_ref {distance_ref!r} is not a positive distance")
         return cls(triple("scale"), triple("weight"), triple("force_weight", True) or (0.0, 0.0, 0.0),
                    float(coverage), int(values.get("frames", 0)), triple("train_min_n", True),
-                   triple("train_max_n", True))
+                   triple("train_max_n", True), None if distance_ref is None else float(distance_ref))
 
     def with_training_range(self, low_n, high_n) -> BandCalibration:
         return replace(self, train_min_n=tuple(float(v) for v in low_n), train_max_n=tuple(float(v) for v in high_n))
@@ -109,10 +122,21 @@ def half_width(spread_n, force_n, scale_n, weight, force_weight):
     return scale_n * signal(spread_n, force_n, weight, force_weight)
 
 
-def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE
-              ) -> BandCalibration | None:
+def stretch(distance, distance_ref: float | None):
+    """The band's factor for frames' embedding distances (NumPy array or torch tensor, any shape):
+    max(1, distance / distance_ref); 1 where the distance is unknown (NaN) or there is no reference."""
+    factor = distance / (math.inf if distance_ref is None else distance_ref)
+    if hasattr(factor, "nan_to_num"):  # a torch tensor
+        return factor.nan_to_num(1.0).clamp(min=1.0)
+    return np.maximum(np.nan_to_num(factor, nan=1.0), 1.0)
+
+
+def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE,
+              distance: np.ndarray | None = None) -> BandCalibration | None:
     """Split-conformal calibration on validation frames (module docstring): forces (M, 3) N predicted
-    and measured, the views' spread (M, 3) N. None with fewer than `MIN_FRAMES` frames with a force."""
+    and measured, the views' spread (M, 3) N, and the frames' embedding distances (M,) when the model
+    has a reference (their median is `distance_ref`). None with fewer than `MIN_FRAMES` frames with a
+    force."""
     pred, true, spread = (np.asarray(a, dtype=np.float64).reshape(-1, 3) for a in (pred_n, true_n, spread_n))
     known = np.isfinite(true).all(axis=1) & np.isfinite(pred).all(axis=1) & np.isfinite(spread).all(axis=1)
     if known.sum() < max(MIN_FRAMES, math.ceil(1 / (1 - coverage))):
@@ -127,8 +151,13 @@ def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, cove
         weights, scaled = [(0.0, 0.0)] * 3, np.ones(len(error), bool)
     scales = [conformal_quantile(error[scaled, c] / signal(spread[scaled, c], size[scaled, c], *weights[c]), coverage)
               for c in range(3)]
+    reference = None
+    if distance is not None:
+        seen = np.asarray(distance, dtype=np.float64).reshape(-1)[known]
+        seen = seen[np.isfinite(seen)]
+        reference = float(np.median(seen)) if len(seen) and np.median(seen) > 0 else None
     return BandCalibration(tuple(scales), tuple(w[0] for w in weights), tuple(w[1] for w in weights),
-                           float(coverage), int(known.sum()))
+                           float(coverage), int(known.sum()), distance_ref=reference)
 
 
 def _narrowest_weights(error: np.ndarray, spread: np.ndarray, size: np.ndarray, coverage: float
@@ -196,7 +225,9 @@ def describe(calibration: BandCalibration | None) -> str:
         return "no band (not calibrated)"
     parts = [f"{n} {s:.3g} N (spread x{w:.3g}, |F| x{f:.3g})" for n, s, w, f in
              zip(("Fx", "Fy", "Fz"), calibration.scale, calibration.weight, calibration.force_weight, strict=True)]
-    return f"{calibration.coverage:.0%} band on {calibration.frames} validation frames: " + ", ".join(parts)
+    stretched = "" if calibration.distance_ref is None else \
+        f"; stretched beyond embedding distance {calibration.distance_ref:.3g}"
+    return f"{calibration.coverage:.0%} band on {calibration.frames} validation frames: " + ", ".join(parts) + stretched
 
 
 def format_band_table(result: dict[str, dict], calibration: BandCalibration | None = None) -> str:

@@ -51,7 +51,8 @@ from vfmodels.evaluation.band import band_metrics, describe
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.reports.figures import plot_force_series
-from vfmodels.training.regressor import Estimate, ForceRegressor, read_checkpoint
+from vfmodels.training.checkpoint import read_checkpoint
+from vfmodels.training.regressor import Estimate, ForceRegressor
 
 # ---- the model -----------------------------------------------------------------------------------
 
@@ -149,7 +150,7 @@ def estimate_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Trac
     tokens, valid, side = track_tokens(spec, tracks.points_object_mm, tracks.visible, tracks.times_ns,
                                        (tracks.frame.rotation, tracks.frame.origin))
     if not len(tokens):
-        return Estimate(*(np.zeros((0, 3)) for _ in Estimate._fields)), side
+        return Estimate(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), side
     estimate = windowed_estimate(regressor, frame_embeddings(regressor, tokens, valid), history(spec, window))
     return estimate._replace(force_n=mirror_y(estimate.force_n, side)), side
 

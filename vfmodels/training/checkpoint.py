@@ -1,4 +1,5 @@
-"""`ResumableCheckpoint`: Lightning's ModelCheckpoint (the best checkpoint by the monitored metric)
+"""Checkpoints: reading one as data (`read_checkpoint`, `band_from_checkpoint`), and `ResumableCheckpoint`,
+Lightning's ModelCheckpoint (the best checkpoint by the monitored metric)
 whose `last.ckpt` is rewritten after every epoch.
 
 Since Lightning 2.6, `save_last=True` writes `last.ckpt` only when a top-k checkpoint is saved, i.e.
@@ -10,7 +11,42 @@ resuming needs; the best checkpoint is chosen exactly as before.
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
+import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
+
+from vfdata.errors import InputError
+from vfdata.weights import load_weights
+from vfmodels.evaluation import band
+
+
+def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """A checkpoint's contents, read as data only (no code runs: `vfdata.weights.load_weights`); an
+    InputError naming the file when it is missing, damaged or not a checkpoint."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "checkpoint not found")
+    checkpoint = load_weights(path, "checkpoint")
+    if not isinstance(checkpoint, dict):
+        raise InputError(path, "not a checkpoint (its contents are not a dictionary)")
+    return checkpoint
+
+
+def band_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> band.BandCalibration | None:
+    """The band calibration a checkpoint holds (`force_model.band`), None when it has none (no validation,
+    or a checkpoint from before bands); an InputError naming the file when it is damaged."""
+    spec = checkpoint.get("force_model")
+    values = spec.get("band") if isinstance(spec, dict) else None
+    if values is None:
+        return None
+    try:
+        if not isinstance(values, dict):
+            raise ValueError(f"band calibration {values!r} is not a mapping")
+        return band.BandCalibration.from_dict(values)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from None
 
 
 class ResumableCheckpoint(ModelCheckpoint):

@@ -23,7 +23,7 @@ from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
 
-FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread")
+FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread", "distance")
 VECTORS = ("pred", "true", "band", "spread")  # (M, 3) N
 
 
@@ -31,8 +31,8 @@ class PredictionCollector(BasePredictionWriter):
     """Per-frame predictions of a `trainer.predict` run, available as `frames` after it: recording
     (M,) str, orientation_deg (M,), frame_time_ns (M,) int64, pred (M, 3) N, true (M, 3) N (NaN where
     the batches had no measured force), band (M, 3) N (the half-width of each component's band, NaN
-    without a calibration) and spread (M, 3) N (its signal: `vfmodels.training.regressor.Estimate`), sorted by
-    recording and time."""
+    without a calibration), spread (M, 3) N and distance (M,) (its signals: `vfmodels.training.regressor.Estimate`;
+    NaN where unknown), sorted by recording and time."""
 
     def __init__(self) -> None:
         super().__init__(write_interval="batch")
@@ -51,6 +51,7 @@ class PredictionCollector(BasePredictionWriter):
         true = prediction["true_n"].numpy() if "true_n" in prediction else np.full_like(pred, np.nan)
         band = prediction["band_n"].numpy() if "band_n" in prediction else np.full_like(pred, np.nan)
         spread = prediction["spread_n"].numpy() if "spread_n" in prediction else np.full_like(pred, np.nan)
+        distance = prediction["distance"].numpy() if "distance" in prediction else np.full(pred.shape[:2], np.nan)
         self._parts.append({
             "recording": np.repeat(np.asarray(prediction["recording"], dtype=object), t).astype(str),
             "orientation_deg": np.repeat(prediction["orientation_deg"].numpy().astype(np.float64), t),
@@ -60,6 +61,7 @@ class PredictionCollector(BasePredictionWriter):
             "true": true.reshape(-1, 3).astype(np.float64),
             "band": band.reshape(-1, 3).astype(np.float64),
             "spread": spread.reshape(-1, 3).astype(np.float64),
+            "distance": distance.reshape(-1).astype(np.float64),
         })
 
     def on_predict_end(self, trainer, pl_module) -> None:

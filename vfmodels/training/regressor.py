@@ -39,12 +39,14 @@ from torch import nn
 
 from vfdata.clips.tokens import latest_clip_frames, turn_about_z
 from vfdata.errors import InputError
-from vfdata.weights import load_weights
-from vfmodels.evaluation import band
+from vfmodels.evaluation import band, familiarity
 from vfmodels.evaluation.metrics import force_metrics, format_table, grouped_force_metrics
 from vfmodels.networks.registry import build_model, class_path
+from vfmodels.training.checkpoint import band_from_checkpoint, read_checkpoint
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
+REFERENCE_NAMES = ("embedding_mean", "embedding_precision")  # `vfmodels.evaluation.familiarity`
+REFERENCE_CLIPS = 256  # training clips whose frames make the reference (evenly spread over the split)
 COMPILED_PREFIX = "_compiled."
 
 
@@ -52,11 +54,14 @@ class Estimate(NamedTuple):
     """What the model says of each frame, every tensor (..., 3) in N in the object frame: the force (the
     mean over the symmetry views), the half-width of its band (`vfmodels.evaluation.band`: force +- band_n covers the
     calibration's stated share of frames; NaN without a calibration) and the views' spread (the band's
-    signal: their population std, 0 with one view)."""
+    signal: their population std, 0 with one view), and (...) the distance of the frame's embedding from the
+    training frames' (`vfmodels.evaluation.familiarity`; NaN when the model has no reference), which stretches
+    the band."""
 
     force_n: torch.Tensor
     band_n: torch.Tensor
     spread_n: torch.Tensor
+    distance: torch.Tensor
 
 
 class ForceRegressor(L.LightningModule):
@@ -72,7 +77,10 @@ class ForceRegressor(L.LightningModule):
     The band (`vfmodels.evaluation.band`): `band_calibration`, set at the end of every validation epoch from that
     epoch's validation frames (split-conformal scaling of the symmetry views' spread), with the training
     forces' range from `trainer.datamodule.force_range`; saved in every checkpoint (`force_model.band`)
-    and restored with it. None (no validation, too few frames): every band is NaN.
+    and restored with it. None (no validation, too few frames): every band is NaN. A causal model's band
+    is stretched where a frame is unlike the training frames: before each validation the embeddings of up
+    to `REFERENCE_CLIPS` training clips (`trainer.datamodule.reference_dataloader`) give the reference
+    (buffers `embedding_mean`, `embedding_precision`, saved and restored like the statistics).
 
     `symmetry_turns=n` (n >= 1; 0 = off) averages every prediction outside training over the tube's
     symmetries: n turns about the object's Z axis (360/n degrees apart), each with its mirror across
@@ -99,7 +107,7 @@ class ForceRegressor(L.LightningModule):
         self.symmetry_turns = symmetry_turns
         self.save_hyperparameters(ignore=["model", "symmetry_turns"])
         self.model = model
-        for name in STAT_NAMES:
+        for name in STAT_NAMES + REFERENCE_NAMES:
             self.register_buffer(name, torch.empty(0))
         # Buffers start empty; a checkpoint's statistics replace them whatever their shape.
         self.register_load_state_dict_pre_hook(self._adopt_stat_shapes)
@@ -119,7 +127,9 @@ class ForceRegressor(L.LightningModule):
             del state_dict[key]
 
     def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
-        for name in STAT_NAMES:
+        for name in REFERENCE_NAMES:  # checkpoints from before the reference have none: no stretch
+            state_dict.setdefault(prefix + name, torch.empty(0))
+        for name in STAT_NAMES + REFERENCE_NAMES:
             if prefix + name in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[prefix + name], device=self.force_mean.device))
 
@@ -172,7 +182,10 @@ class ForceRegressor(L.LightningModule):
         return self.normalise_force(self.estimate(batch).force_n)
 
     def estimate(self, batch: dict[str, Any]) -> Estimate:
-        """The forces (B, T, 3) in N of a batch of clips, averaged over the symmetry views, with their band."""
+        """The forces (B, T, 3) in N of a batch of clips, averaged over the symmetry views, with their band.
+        A causal model goes through `encode_frames` and `decode_frames`, as prediction and live do."""
+        if self.causal:
+            return self.decode_frames(self.encode_frames(batch[self.model.input_key], batch.get("valid")))[0]
         model = self._compiled if self._compiled is not None else self.model
         x, valid = self._views_of(batch[self.model.input_key], batch.get("valid"))
         return self._estimate_of_views(self.denormalise_force(model(self.normalise_input(x), valid)))
@@ -200,7 +213,22 @@ class ForceRegressor(L.LightningModule):
         from). `state` None: the zero state a clip starts from, so one call on a clip's embeddings gives
         what the test scores."""
         out, state = self.model.decode_frames(z, state)
-        return self._estimate_of_views(self.denormalise_force(out)), state
+        return self._estimate_of_views(self.denormalise_force(out), self.embedding_distance(z)), state
+
+    def embedding_distance(self, z: torch.Tensor) -> torch.Tensor:
+        """Embeddings (V * B, T, D) of `encode_frames` -> (B, T): the first (unturned) view's distance from the
+        training frames' (`vfmodels.evaluation.familiarity`); NaN without a reference."""
+        first = z.unflatten(0, (max(1, 2 * self.symmetry_turns), -1))[0]
+        if self.embedding_mean.numel() == 0:
+            return torch.full(first.shape[:-1], float("nan"), dtype=first.dtype, device=first.device)
+        return familiarity.distance(first, self.embedding_mean, self.embedding_precision)
+
+    def set_embedding_reference(self, z: torch.Tensor) -> None:
+        """The reference of `embedding_distance` from training frames' embeddings (M, D) (unchanged when
+        there are too few of them)."""
+        stats = familiarity.reference(z)
+        if stats is not None:
+            self.embedding_mean, self.embedding_precision = (v.to(self.force_mean.device) for v in stats)
 
     def _views_of(self, x: torch.Tensor, valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Inputs (B, ...) -> every view's (V * B, ...), in one batch: one network pass for all views."""
@@ -211,26 +239,33 @@ class ForceRegressor(L.LightningModule):
         both = None if valid is None else valid.expand(len(views), *valid.shape).flatten(0, 1)
         return turned.flatten(0, 1), both
 
-    def _estimate_of_views(self, force_n: torch.Tensor) -> Estimate:
-        """Forces (V * B, ..., 3) in N of every view -> the `Estimate` (B, ..., 3): each view turned back,
-        their mean, their spread and its band."""
+    def _estimate_of_views(self, force_n: torch.Tensor, distance: torch.Tensor | None = None) -> Estimate:
+        """Forces (V * B, ..., 3) in N of every view and the frames' embedding distance (B, ...) (None:
+        unknown) -> the `Estimate` (B, ..., 3): each view turned back, their mean, their spread and its band."""
         if self.symmetry_turns:
             views = torch.stack(symmetry_views(self.symmetry_turns, device=force_n.device))
             turned = torch.einsum("v...i,vij->v...j", force_n.unflatten(0, (len(views), -1)), views)
             force, spread = turned.mean(0), turned.std(0, correction=0)
         else:
             force, spread = force_n, torch.zeros_like(force_n)
-        return Estimate(force, self.band_of(spread, force), spread)
+        if distance is None:
+            distance = torch.full(force.shape[:-1], float("nan"), dtype=force.dtype, device=force.device)
+        return Estimate(force, self.band_of(spread, force, distance), spread, distance)
 
-    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor) -> torch.Tensor:
+    def band_of(self, spread_n: torch.Tensor, force_n: torch.Tensor, distance: torch.Tensor | None = None
+                ) -> torch.Tensor:
         """The band's half-width (N) for the views' spread and the estimate, (..., 3) N each
-        (`vfmodels.evaluation.band.half_width`); NaN without a calibration."""
+        (`vfmodels.evaluation.band.half_width`), stretched by the frames' embedding `distance` (...)
+        (`band.stretch`); NaN without a calibration."""
         calibration = self.band_calibration
         if calibration is None:
             return torch.full_like(spread_n, float("nan"))
         scale, weight, force_weight = (torch.tensor(v, dtype=spread_n.dtype, device=spread_n.device)
                                        for v in (calibration.scale, calibration.weight, calibration.force_weight))
-        return band.half_width(spread_n, force_n.abs(), scale, weight, force_weight)
+        half = band.half_width(spread_n, force_n.abs(), scale, weight, force_weight)
+        if distance is None:
+            return half
+        return half * band.stretch(distance, calibration.distance_ref)[..., None].to(half.dtype)
 
     def beyond_range(self, force_n: np.ndarray) -> np.ndarray:
         """How far (N, signed, 0 inside) each component of forces (..., 3) lies beyond the training forces'
@@ -261,16 +296,17 @@ class ForceRegressor(L.LightningModule):
         self._evaluate(batch, "test")
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> dict[str, Any]:
-        """{"force_n": (B, T, 3) N, "band_n" and "spread_n" (B, T, 3) N (`Estimate`), "recording": [...],
-        "frame_time_ns": (B, T), "orientation_deg": (B,), and "true_n" (B, T, 3) N when the batch has the
-        measured force} (CPU tensors). A clip of a mirrored recording (batch "side" -1) has its Fy turned
-        back to the sensor's."""
+        """{"force_n": (B, T, 3) N, "band_n" and "spread_n" (B, T, 3) N, "distance" (B, T) (`Estimate`),
+        "recording": [...], "frame_time_ns": (B, T), "orientation_deg": (B,), and "true_n" (B, T, 3) N when
+        the batch has the measured force} (CPU tensors). A clip of a mirrored recording (batch "side" -1)
+        has its Fy turned back to the sensor's."""
         b = len(batch[self.model.input_key])
         estimate = self.estimate(batch)
         out = {
             "force_n": self.unmirror(estimate.force_n, batch),
             "band_n": estimate.band_n.detach().float().cpu(),
             "spread_n": estimate.spread_n.detach().float().cpu(),
+            "distance": estimate.distance.detach().float().cpu(),
             "recording": list(batch.get("recording", [""] * b)),
             "frame_time_ns": batch["frame_time_ns"].cpu() if "frame_time_ns" in batch else None,
             "orientation_deg": torch.as_tensor(batch.get("orientation_deg", torch.zeros(b))).float().cpu(),
@@ -309,6 +345,7 @@ class ForceRegressor(L.LightningModule):
             true_n=true_n.numpy().reshape(-1, 3),
             band_n=estimate.band_n.detach().float().cpu().numpy().reshape(-1, 3),
             spread_n=estimate.spread_n.detach().float().cpu().numpy().reshape(-1, 3),
+            distance=estimate.distance.detach().float().cpu().numpy().reshape(-1),
             orientation_deg=np.repeat(torch.as_tensor(orientation).cpu().numpy(), t),
             recording=np.repeat(np.asarray(batch.get("recording", [""] * b), dtype=object), t),
             frame_time_ns=(batch["frame_time_ns"].cpu().numpy().reshape(-1) if "frame_time_ns" in batch
@@ -331,6 +368,24 @@ class ForceRegressor(L.LightningModule):
         known = np.isfinite(frames["true_n"]).all(axis=1)
         return {k: v[known] for k, v in frames.items()}
 
+    def on_validation_epoch_start(self) -> None:
+        # The reference of the weights about to be validated (callbacks such as EMAWeightAveraging have
+        # swapped theirs in already), so that validation's distances and the band's `distance_ref` match.
+        clips = getattr(getattr(self.trainer, "datamodule", None), "reference_dataloader", None)
+        if self.causal and clips is not None and not self.trainer.sanity_checking:
+            self.take_embedding_reference(clips(REFERENCE_CLIPS))
+
+    @torch.no_grad()
+    def take_embedding_reference(self, batches) -> None:
+        """Sets the reference of `embedding_distance` from the training clips of `batches` (their first
+        view's embeddings), with the random draws of their augmentation seeded and the caller's stream kept."""
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            z = [self.model.encode_frames(self.normalise_input(batch[self.model.input_key].to(self.device)),
+                                          None if batch.get("valid") is None else batch["valid"].to(self.device))
+                 for batch in batches]
+        self.set_embedding_reference(torch.cat([e.reshape(-1, e.shape[-1]) for e in z]))
+
     def on_validation_epoch_end(self) -> None:
         frames = self._collect("val")
         if frames is None or self.trainer.sanity_checking or len(frames["true_n"]) < 2:
@@ -340,12 +395,14 @@ class ForceRegressor(L.LightningModule):
         # The band of these weights, from their validation frames: the checkpoint saved after this
         # validation holds both (with EMAWeightAveraging, validation ran on the averaged weights, which
         # the checkpoint saves).
-        self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"])
+        self.calibrate_band(frames["pred_n"], frames["true_n"], frames["spread_n"], frames["distance"])
 
-    def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray) -> None:
-        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.evaluation.band.calibrate`), with the
-        training range when it is known (kept from the calibration it replaces otherwise)."""
-        calibration = band.calibrate(pred_n, true_n, spread_n)
+    def calibrate_band(self, pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray,
+                       distance: np.ndarray | None = None) -> None:
+        """Sets `band_calibration` from validation frames (M, 3) N (`vfmodels.evaluation.band.calibrate`) and their
+        embedding distances (M,), with the training range when it is known (kept from the calibration it
+        replaces otherwise)."""
+        calibration = band.calibrate(pred_n, true_n, spread_n, distance=distance)
         train_range = self._train_range
         if train_range is None and self.band_calibration is not None and self.band_calibration.train_min_n:
             train_range = (self.band_calibration.train_min_n, self.band_calibration.train_max_n)
@@ -424,35 +481,8 @@ class ForceRegressor(L.LightningModule):
         return regressor.eval()
 
 
-def band_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> band.BandCalibration | None:
-    """The band calibration a checkpoint holds (`force_model.band`), None when it has none (no validation,
-    or a checkpoint from before bands); an InputError naming the file when it is damaged."""
-    spec = checkpoint.get("force_model")
-    values = spec.get("band") if isinstance(spec, dict) else None
-    if values is None:
-        return None
-    try:
-        if not isinstance(values, dict):
-            raise ValueError(f"band calibration {values!r} is not a mapping")
-        return band.BandCalibration.from_dict(values)
-    except ValueError as exc:
-        raise InputError(path, str(exc)) from None
-
-
 def symmetry_views(turns: int, device: torch.device | str = "cpu") -> list[torch.Tensor]:
     """The 2 * `turns` (3, 3) orthogonal maps of the object frame that the tube is (nearly) symmetric
     under: turns about Z by 360/`turns` degrees, each without and with the mirror across XZ (y negated)."""
     return [torch.as_tensor(turn_about_z(2 * np.pi * k / turns, mirror), dtype=torch.float32, device=device)
             for k in range(turns) for mirror in (False, True)]
-
-
-def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """A checkpoint's contents, read as data only (no code runs: `vfdata.weights.load_weights`); an
-    InputError naming the file when it is missing, damaged or not a checkpoint."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "checkpoint not found")
-    checkpoint = load_weights(path, "checkpoint")
-    if not isinstance(checkpoint, dict):
-        raise InputError(path, "not a checkpoint (its contents are not a dictionary)")
-    return checkpoint

@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from vfmodels.training.regressor import read_checkpoint
+from vfmodels.training.checkpoint import read_checkpoint
 
 
 def run_entries(root: Path) -> set[Path]:

@@ -31,14 +31,14 @@ from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--d
 from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
 from vfmodels.networks.registry import MODELS, class_path
-from vfmodels.training.checkpoint import ResumableCheckpoint
+from vfmodels.training.checkpoint import ResumableCheckpoint, read_checkpoint
 from vfmodels.training.cli_errors import ForceArgumentParser
 from vfmodels.training.early_stopping import ValidationEarlyStopping
 from vfmodels.training.epoch_timer import EpochTimer
 from vfmodels.training.prediction_writer import ForceEstimateWriter
 from vfmodels.training.progress import RunProgressBar
 from vfmodels.training.quiet import quiet_lightning
-from vfmodels.training.regressor import ForceRegressor, read_checkpoint
+from vfmodels.training.regressor import ForceRegressor
 from vfmodels.training.run_folder import closing_line, remove_new_entries, run_entries
 
 DESCRIPTION = ("VisionForce: train, test and run the force models (Set Transformer-LSTM on tracked tissue "
