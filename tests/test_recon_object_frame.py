@@ -186,23 +186,24 @@ def test_the_roundest_fit_is_taken_over_one_an_occluder_band_turned(seed):
     assert fits["frontal"]["residual"] < fits["cloud"]["residual"]
 
 
-@pytest.mark.parametrize("seed", [2, 3])
-def test_a_smaller_cloud_as_round_about_a_turned_axis_makes_the_axis_doubtful(seed):
+@pytest.mark.parametrize(("seed", "degrees"), [(2, 20.0), (3, 20.0), (2, 11.5), (3, 11.5)])
+def test_a_smaller_cloud_as_round_about_a_turned_axis_makes_the_axis_doubtful(seed, degrees):
     """glove_009 of the sweep: the metal-free cloud (the chosen fit's judge) is a partial tube that a turned
     axis fits roundly, while the metal-free frontal cloud, too small to be chosen, is as round about the
-    true axis. Two clouds that each look like a tube about axes 20 degrees apart: the axis is a guess."""
+    true axis. Two clouds that each look like a tube about axes 20 degrees apart: the axis is a guess. So
+    is it at 11.5 degrees (glove_018 of glove 203: 11.9), beyond the 10 the object frame promises."""
     from vfdata.recon.tissue_frame import chosen_axis
 
     rng = np.random.default_rng(seed)
     rotation = _side_view_rotation(rng)
     tube = tapered_tube(rng, rotation, n=3000)
-    turn = cv2.Rodrigues(np.radians(20.0) * rotation[:, 0])[0]  # 20 degrees about the tube's X
+    turn = cv2.Rodrigues(np.radians(degrees) * rotation[:, 0])[0]  # about the tube's X
     turned = tapered_tube(rng, turn @ rotation, n=3000)
     share = 0.3 * len(tube) / len(turned)
     rival = turned[: int(share * len(turned))]
     clouds = {"cloud": tube, "clean": tube[: int(0.7 * len(tube))], "frontal": tube[::2]}
     _axis, diagnostics = chosen_axis({**clouds, "clean_frontal": rival})
-    assert diagnostics["axis_from"] != "clean_frontal" and diagnostics["axis_fits"]["clean_frontal"]["deg"] > 15.0
+    assert diagnostics["axis_from"] != "clean_frontal" and diagnostics["axis_fits"]["clean_frontal"]["deg"] > 10.0
     assert diagnostics["axis_doubtful"] and diagnostics["axis_rivals"] == ["clean_frontal"]
     _axis, diagnostics = chosen_axis({**clouds, "clean_frontal": tube[: len(rival)]})
     assert not diagnostics["axis_doubtful"] and diagnostics["axis_rivals"] == []  # the same tube: no rival
