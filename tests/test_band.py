@@ -191,5 +191,8 @@ def test_the_report_lists_coverage_and_width_per_view():
     cells = [c.strip() for c in row.split("|")]
     assert cells[3] == "2" and all(v.endswith("%") for v in cells[4].split(" / "))
     assert "Spearman(half-width, RMSE) over 6 views" in text
+    unlike = {"share": 0.05, "frames": 30, "rmse": 2.5, "rmse_rest": 1.2}
+    text = band_markdown({"visionforce": [{**run, "unfamiliar": unlike}]}, {"visionforce": "VisionForce"}, "colon")
+    assert "VisionForce: 5.0% of test frames have an input unlike training's" in text and "RMSE there 2.50 N" in text
     # a run without a band (ridge) is left out; none at all: no table
     assert band_markdown({"ridge": [run_metrics({k: v for k, v in predictions.items() if k != "band"})]}, {}, "x") == ""

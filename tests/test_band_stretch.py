@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader, Subset
 
 from vfmodels import ForceRegressor, SetTransformerLSTM
 from vfmodels.evaluation import familiarity
-from vfmodels.evaluation.band import BandCalibration, calibrate, stretch
+from vfmodels.evaluation.band import BandCalibration, calibrate, stretch, unfamiliar
 
 
 def test_the_distance_is_mahalanobis_from_the_training_frames():
@@ -74,6 +74,9 @@ def test_training_keeps_a_reference_and_the_band_widens_far_from_it(tmp_path):
     expected = (away.distance / loaded.band_calibration.distance_ref).clamp(min=1)[..., None].expand_as(ratio)
     assert torch.allclose(ratio, expected, rtol=1e-4)
     assert torch.median(ratio) > 3
+    unlike = unfamiliar(away.distance.numpy(), loaded.band_calibration)
+    assert loaded.band_calibration.distance_limit > loaded.band_calibration.distance_ref
+    assert unlike.mean() > 0.9 and unfamiliar(near.distance.numpy(), loaded.band_calibration).mean() < 0.1
 
     # a checkpoint from before the reference: it loads, the distance is unknown and the band unstretched
     checkpoint = torch.load(path, weights_only=True)
@@ -105,3 +108,29 @@ def test_the_reference_clips_are_training_clips_evenly_spread(tmp_path):
     starts = [int(b["frame_time_ns"][i, 0]) for b in few for i in range(len(b["frame_time_ns"]))]
     assert starts == sorted(starts) and len(starts) == 3
     assert len(dm.reference_dataloader(10_000).dataset) == len(train)
+
+
+def test_frames_beyond_validations_99th_percentile_are_unlike_training(tmp_path):
+    from vfmodels.evaluation.band import distance_scale, unfamiliar_metrics
+    from vfmodels.experiment.runs import write_run
+
+    rng = np.random.default_rng(2)
+    val_distance = rng.uniform(1.0, 3.0, 1000)
+    ref, limit = distance_scale(val_distance)
+    assert ref == pytest.approx(2.0, abs=0.1) and limit == pytest.approx(2.98, abs=0.02)
+    assert distance_scale(np.full(5, np.nan)) == (None, None)
+    true = rng.normal(size=(200, 3))
+    pred = true + 0.1
+    distance = np.full(200, 2.0)
+    distance[:20] = 10.0
+    pred[:20] += 1.0  # the unfamiliar frames err more
+    cal = calibrate(pred, true, np.zeros((200, 3)), distance=val_distance[:200])
+    assert unfamiliar(distance, cal).sum() == 20 and not unfamiliar(distance, None).any()
+    m = unfamiliar_metrics(pred, true, distance, limit)
+    assert m["frames"] == 20 and m["share"] == pytest.approx(0.1)
+    assert m["rmse"] == pytest.approx(1.1) and m["rmse_rest"] == pytest.approx(0.1)
+
+    frames = {"recording": np.array(["r"] * 200), "orientation_deg": np.zeros(200), "frame_time_ns": np.arange(200),
+              "pred": pred, "true": true, "distance": distance}
+    summary = write_run(tmp_path, frames, {}, {**frames, "distance": val_distance[:200]})
+    assert summary["unfamiliar"]["frames"] == 20 and summary["unfamiliar"]["rmse"] == pytest.approx(1.1)

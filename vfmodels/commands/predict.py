@@ -101,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
     if result.frames_beyond:
         print(f"warning: {result.frames_beyond} of {result.frames} frames have a force beyond the training range "
               f"(marked on /force/estimate/beyond and in the plot): no band speaks for them")
+    if result.frames_unfamiliar:
+        print(f"warning: {result.frames_unfamiliar} of {result.frames} frames look unlike any training frame "
+              f"(the model's input, farther from training than 99% of validation's; marked in the plot): their band "
+              f"is widened, and such frames erred twice as much on unseen views")
     stages = {**result.stage_fps, "force": result.force_fps}
     print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     for path in (result.force_mcap, result.plot, result.video):

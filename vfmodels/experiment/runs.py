@@ -3,7 +3,7 @@ recording, orientation_deg, frame_time_ns, pred (M, 3) N, true (M, 3) N, and for
 band (M, 3) N, its half-width, and spread (M, 3) N, its signal), validation.npz (the same of the
 validation frames, which the band was calibrated on) and metrics.json, written last (with the validation
 split's pooled metrics under "val", the reference a test orientation's error is compared with, and the
-band's coverage under "band")."""
+band's coverage under "band", and the test frames whose input is unlike training's under "unfamiliar")."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vfmodels.evaluation.band import distance_scale, unfamiliar_metrics
 from vfmodels.experiment.variants import Variant
 from vfmodels.reports.tables import run_metrics
 
@@ -35,6 +36,11 @@ def write_run(run_dir: Path, predictions: dict[str, np.ndarray], summary: dict,
     if validation is not None:
         np.savez_compressed(run_dir / "validation.npz", **validation)
         summary["val"] = run_metrics(validation)["pooled"]
+        limit = distance_scale(validation.get("distance"))[1]
+        if limit is not None and "distance" in predictions:
+            known = np.isfinite(predictions["true"]).all(axis=1)
+            summary["unfamiliar"] = unfamiliar_metrics(predictions["pred"][known], predictions["true"][known],
+                                                       predictions["distance"][known], limit)
     tmp = run_dir / "metrics.json.partial"
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(run_dir / "metrics.json")

@@ -47,7 +47,7 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
-from vfmodels.evaluation.band import band_metrics, describe
+from vfmodels.evaluation.band import band_metrics, describe, unfamiliar
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.reports.figures import plot_force_series
@@ -188,6 +188,7 @@ class PredictResult:
     band: str = ""  # the model's band calibration in words (vfmodels.evaluation.band.describe)
     band_metrics: dict[str, float] | None = None  # coverage and half-width against the sensor (none without)
     frames_beyond: int = 0  # frames with a component beyond the training range
+    frames_unfamiliar: int = 0  # frames whose input is unlike training's (vfmodels.evaluation.band.unfamiliar)
     confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)
 
 
@@ -240,13 +241,14 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     x_axis = x_axis_meaning(tracks.metadata.object_frame_kind, tracks.metadata.up_known)
     calibration = regressor.band_calibration
     frames_beyond = int((beyond != 0).any(axis=1).sum())
+    unlike = unfamiliar(estimate.distance, calibration)
     confidence = tracks.metadata.confidence
     meta = {**(confidence.metadata() if confidence is not None else {}),
             "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}",
             "band": json.dumps(None if calibration is None else calibration.to_dict()),
-            "frames_beyond_training": str(frames_beyond)}
+            "frames_beyond_training": str(frames_beyond), "frames_unlike_training": str(int(unlike.sum()))}
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
                                       camera_frame_id=tracks.metadata.camera_frame_id, band_n=estimate.band_n,
                                       beyond_n=beyond)
@@ -257,7 +259,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
         if confidence is not None and confidence.doubtful:
             title = f"DOUBTFUL ({', '.join(confidence.reasons)}): {title}"
         plot = plot_force_series(force, paths["plot"], measured_n=measured, title=title,
-                                 band_n=estimate.band_n, beyond_n=beyond,
+                                 band_n=estimate.band_n, beyond_n=beyond, unfamiliar=unlike,
                                  coverage=None if calibration is None else calibration.coverage)
         video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress,
                                          band_n=estimate.band_n, beyond_n=beyond) if video else None
@@ -267,7 +269,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
         if known.sum() > 1 and calibration is not None else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
                          tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics,
-                         describe(calibration), coverage, frames_beyond, confidence)
+                         describe(calibration), coverage, frames_beyond, int(unlike.sum()), confidence)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,

@@ -185,12 +185,14 @@ def plot_tracked_points(image_bgr: np.ndarray, tracks: Mapping[str, tuple[np.nda
 
 def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.ndarray | None = None,
                       measured_n: np.ndarray | None = None, title: str = "", band_n: np.ndarray | None = None,
-                      beyond_n: np.ndarray | None = None, coverage: float | None = None) -> Path:
+                      beyond_n: np.ndarray | None = None, coverage: float | None = None,
+                      unfamiliar: np.ndarray | None = None) -> Path:
     """`vfdata predict`'s plot: Fx, Fy, Fz (N) against the frame index, one panel each. With the
     recording's measured force: measured solid in colour, estimated dashed black (as Fig. 7), and
     each panel's RMSE in its label. With `band_n` (T, 3) N, the band's half-width: the estimate +- it
     shaded (and, with a measured force, the share of frames inside it); with `beyond_n` (T, 3) N, the
-    frames whose component lies beyond the training range marked on the panel's lower edge."""
+    frames whose component lies beyond the training range marked on the panel's lower edge; with
+    `unfamiliar` (T,) bool, the frames whose input is unlike training's marked on its upper edge."""
     force = np.asarray(force_n, dtype=np.float64).reshape(-1, 3)
     index = np.arange(len(force)) if frame_index is None else np.asarray(frame_index)
     band = None if band_n is None else np.asarray(band_n, dtype=np.float64).reshape(-1, 3)
@@ -222,6 +224,10 @@ def plot_force_series(force_n: np.ndarray, path: str | Path, frame_index: np.nda
             if beyond.any():
                 ax.plot(index[beyond], np.full(int(beyond.sum()), 0.02), "|", color="tab:orange", ms=8,
                         transform=ax.get_xaxis_transform(), label=f"beyond training ({beyond.sum()} frames)")
+        if unfamiliar is not None and np.asarray(unfamiliar).any():
+            unlike = np.asarray(unfamiliar, bool).reshape(-1)
+            ax.plot(index[unlike], np.full(int(unlike.sum()), 0.98), "|", color="tab:purple", ms=8,
+                    transform=ax.get_xaxis_transform(), label=f"input unlike training ({unlike.sum()} frames)")
         ax.set_ylabel(f"F{comp[1]} (N)")
         ax.grid(alpha=0.3)
         ax.legend(loc="upper right", fontsize=8)

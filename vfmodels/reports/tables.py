@@ -101,6 +101,13 @@ def band_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, st
         if len(width) >= 3:
             rho = float(spearmanr(width, rmse).statistic)
             notes.append(f"{labels.get(name, name)}: Spearman(half-width, RMSE) over {len(width)} views {rho:.2f}")
+        unlike = [r["unfamiliar"] for r in found if "unfamiliar" in r]
+        if unlike:
+            share = np.mean([u["share"] for u in unlike])
+            notes.append(f"{labels.get(name, name)}: {share:.1%} of test frames have an input unlike training's "
+                         "(embedding beyond 99% of validation's), RMSE there "
+                         + ", ".join(f"{u['rmse']:.2f}" for u in unlike) + " N against "
+                         + ", ".join(f"{u['rmse_rest']:.2f}" for u in unlike) + " N elsewhere (per seed)")
     return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
