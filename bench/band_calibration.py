@@ -69,7 +69,7 @@ def rescore(run: Path, kept: Path) -> None:
     data = ForceDataModule(str(manifest), spec, batch_size=8, cache_dir=str(kept.parent / "cache"), progress=False)
     data.setup("fit")
     data.setup("test")
-    if regressor.causal and regressor.embedding_mean.numel() == 0:  # a run from before the stretch
+    if regressor.causal and regressor.embedding_reference is None:  # a run from before the stretch
         regressor.take_embedding_reference(data.reference_dataloader(REFERENCE_CLIPS))
     validation, _ = test_predictions(regressor, data.val_dataloader())
     test, _ = test_predictions(regressor, data.test_dataloader())

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from clip_fixtures import single_thread  # noqa: F401
+from lightning.pytorch.callbacks import EMAWeightAveraging
 from test_band import ValidatedClips
 from torch.utils.data import DataLoader, Subset
 
@@ -52,12 +53,14 @@ def test_training_keeps_a_reference_and_the_band_widens_far_from_it(tmp_path):
     regressor = ForceRegressor(SetTransformerLSTM(in_features=6, dim=8, heads=2, inducing_points=4, lstm_hidden=16),
                                symmetry_turns=1)
     regressor.set_normalisation(**dm.normalisation)
+    # with weight averaging, as configs/visionforce.yaml trains: the averaged copy is made before the reference
     trainer = L.Trainer(max_epochs=2, logger=False, enable_progress_bar=False, enable_model_summary=False,
-                        default_root_dir=tmp_path, accelerator="cpu")
+                        default_root_dir=tmp_path, accelerator="cpu", callbacks=[EMAWeightAveraging(decay=0.9)])
     trainer.fit(regressor, dm)
     path = trainer.checkpoint_callback.best_model_path
     loaded = ForceRegressor.load(path)
-    assert loaded.embedding_mean.shape == (8,) and loaded.embedding_precision.shape == (8, 8)
+    mean, precision = loaded.embedding_reference
+    assert mean.shape == (8,) and precision.shape == (8, 8)
     assert loaded.band_calibration.distance_ref > 0
 
     batch = {k: torch.stack([c[k] for c in dm.clips]) for k in ("tokens", "valid", "force")}
@@ -76,12 +79,11 @@ def test_training_keeps_a_reference_and_the_band_widens_far_from_it(tmp_path):
     assert torch.median(ratio) > 3
     unlike = unfamiliar(away.distance.numpy(), loaded.band_calibration)
     assert loaded.band_calibration.distance_limit > loaded.band_calibration.distance_ref
-    assert unlike.mean() > 0.9 and unfamiliar(near.distance.numpy(), loaded.band_calibration).mean() < 0.1
+    assert unlike.mean() > 0.75 and unfamiliar(near.distance.numpy(), loaded.band_calibration).mean() < 0.1
 
     # a checkpoint from before the reference: it loads, the distance is unknown and the band unstretched
     checkpoint = torch.load(path, weights_only=True)
-    for name in ("embedding_mean", "embedding_precision"):
-        del checkpoint["state_dict"][name]
+    del checkpoint["force_model"]["embedding_reference"]
     old = tmp_path / "old.ckpt"
     torch.save(checkpoint, old)
     before = ForceRegressor.load(old)

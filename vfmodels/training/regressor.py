@@ -42,10 +42,9 @@ from vfdata.errors import InputError
 from vfmodels.evaluation import band, familiarity
 from vfmodels.evaluation.metrics import force_metrics, format_table, grouped_force_metrics
 from vfmodels.networks.registry import build_model, class_path
-from vfmodels.training.checkpoint import band_from_checkpoint, read_checkpoint
+from vfmodels.training.checkpoint import band_from_checkpoint, read_checkpoint, reference_from_checkpoint
 
 STAT_NAMES = ("input_mean", "input_std", "force_mean", "force_std")
-REFERENCE_NAMES = ("embedding_mean", "embedding_precision")  # `vfmodels.evaluation.familiarity`
 REFERENCE_CLIPS = 256  # training clips whose frames make the reference (evenly spread over the split)
 COMPILED_PREFIX = "_compiled."
 
@@ -80,7 +79,9 @@ class ForceRegressor(L.LightningModule):
     and restored with it. None (no validation, too few frames): every band is NaN. A causal model's band
     is stretched where a frame is unlike the training frames: before each validation the embeddings of up
     to `REFERENCE_CLIPS` training clips (`trainer.datamodule.reference_dataloader`) give the reference
-    (buffers `embedding_mean`, `embedding_precision`, saved and restored like the statistics).
+    (`embedding_reference`: mean and precision, saved in every checkpoint beside the band,
+    `force_model.embedding_reference`, not as buffers: weight averaging would average them, and a
+    reference that appears after fitting starts does not fit the averaged copy's empty buffers).
 
     `symmetry_turns=n` (n >= 1; 0 = off) averages every prediction outside training over the tube's
     symmetries: n turns about the object's Z axis (360/n degrees apart), each with its mirror across
@@ -107,7 +108,7 @@ class ForceRegressor(L.LightningModule):
         self.symmetry_turns = symmetry_turns
         self.save_hyperparameters(ignore=["model", "symmetry_turns"])
         self.model = model
-        for name in STAT_NAMES + REFERENCE_NAMES:
+        for name in STAT_NAMES:
             self.register_buffer(name, torch.empty(0))
         # Buffers start empty; a checkpoint's statistics replace them whatever their shape.
         self.register_load_state_dict_pre_hook(self._adopt_stat_shapes)
@@ -116,6 +117,7 @@ class ForceRegressor(L.LightningModule):
         self._outputs: dict[str, list] = {}
         self.test_results: dict[str, Any] | None = None
         self.band_calibration: band.BandCalibration | None = None
+        self.embedding_reference: tuple[torch.Tensor, torch.Tensor] | None = None  # (mean (D,), precision (D, D))
         self._train_range: tuple[np.ndarray, np.ndarray] | None = None  # training forces' (low, high) N
 
     # ---- normalisation -------------------------------------------------------------------------
@@ -127,9 +129,7 @@ class ForceRegressor(L.LightningModule):
             del state_dict[key]
 
     def _adopt_stat_shapes(self, module, state_dict, prefix, *args) -> None:
-        for name in REFERENCE_NAMES:  # checkpoints from before the reference have none: no stretch
-            state_dict.setdefault(prefix + name, torch.empty(0))
-        for name in STAT_NAMES + REFERENCE_NAMES:
+        for name in STAT_NAMES:
             if prefix + name in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[prefix + name], device=self.force_mean.device))
 
@@ -219,16 +219,17 @@ class ForceRegressor(L.LightningModule):
         """Embeddings (V * B, T, D) of `encode_frames` -> (B, T): the first (unturned) view's distance from the
         training frames' (`vfmodels.evaluation.familiarity`); NaN without a reference."""
         first = z.unflatten(0, (max(1, 2 * self.symmetry_turns), -1))[0]
-        if self.embedding_mean.numel() == 0:
+        if self.embedding_reference is None:
             return torch.full(first.shape[:-1], float("nan"), dtype=first.dtype, device=first.device)
-        return familiarity.distance(first, self.embedding_mean, self.embedding_precision)
+        mean, precision = (v.to(first.device) for v in self.embedding_reference)
+        return familiarity.distance(first, mean, precision)
 
     def set_embedding_reference(self, z: torch.Tensor) -> None:
         """The reference of `embedding_distance` from training frames' embeddings (M, D) (unchanged when
         there are too few of them)."""
         stats = familiarity.reference(z)
         if stats is not None:
-            self.embedding_mean, self.embedding_precision = (v.to(self.force_mean.device) for v in stats)
+            self.embedding_reference = tuple(v.detach().cpu() for v in stats)
 
     def _views_of(self, x: torch.Tensor, valid: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Inputs (B, ...) -> every view's (V * B, ...), in one batch: one network pass for all views."""
@@ -447,11 +448,14 @@ class ForceRegressor(L.LightningModule):
             "initialisation": getattr(self.model, "initialisation", "random"),
             "symmetry_turns": self.symmetry_turns,
             "band": None if self.band_calibration is None else self.band_calibration.to_dict(),
+            "embedding_reference": None if self.embedding_reference is None else
+            dict(zip(("mean", "precision"), self.embedding_reference, strict=True)),
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # `train.py test/predict --ckpt_path` restore through Lightning, not `load`.
         self.band_calibration = band_from_checkpoint(checkpoint, Path("checkpoint"))
+        self.embedding_reference = reference_from_checkpoint(checkpoint, Path("checkpoint"))
 
     @classmethod
     def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
@@ -478,6 +482,7 @@ class ForceRegressor(L.LightningModule):
             raise InputError(path, f"the checkpoint's weights do not fit its model ({str(exc).splitlines()[0]})") \
                 from None
         regressor.band_calibration = band_from_checkpoint(checkpoint, path)
+        regressor.embedding_reference = reference_from_checkpoint(checkpoint, path)
         return regressor.eval()
 
 
