@@ -266,6 +266,33 @@ def test_streaming_model_reproduces_the_offline_forces(window, subset):
     np.testing.assert_allclose(np.stack([r[1] for r in results]), offline, rtol=1e-4, atol=1e-5)
 
 
+def test_the_stream_stretches_and_marks_as_offline():
+    """With an embedding reference and a calibration that stretches the band: the stream's band and
+    distances are the offline ones, and both mark the same frames unlike training."""
+    from vfmodels.evaluation.band import BandCalibration, unfamiliar
+
+    reg = _regressor(3)
+    points, visible = _tracks(frames=25)
+    tokens = torch.from_numpy(np.stack([points, np.zeros_like(points)], axis=-1).reshape(1, 25, -1, 6)[:, :10])
+    with torch.no_grad():
+        z = reg.model.encode_frames(reg.normalise_input(tokens.float()))
+    frames = z.reshape(-1, z.shape[-1]).repeat(10, 1)  # the first 10 frames' embeddings, spread a little
+    reg.set_embedding_reference(frames + 0.1 * torch.randn(frames.shape, generator=torch.Generator().manual_seed(0)))
+    offline, _side = predict.estimate_from_tracks(reg, ClipSpec(), _as_tracks(points, visible), 8)
+    limit = float(np.median(offline.distance))
+    reg.band_calibration = BandCalibration((0.5, 0.5, 0.5), (0.0, 0.0, 0.0), distance_ref=limit / 2,
+                                           distance_limit=limit)
+    offline, _side = predict.estimate_from_tracks(reg, ClipSpec(), _as_tracks(points, visible), 8)
+    assert np.isfinite(offline.distance).all() and (offline.band_n > 0.5).any()
+    stream = StreamingForceModel(reg, ClipSpec(), np.eye(3), np.zeros(3), window=8)
+    stamps = np.arange(25) * 33_333_333
+    results = [stream.push(s, p, v) for s, p, v in zip(stamps, points, visible, strict=True)][1:] + [stream.flush()]
+    np.testing.assert_allclose(np.stack([r[2] for r in results]), offline.band_n, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose([r[3] for r in results], offline.distance, rtol=1e-4)
+    marks = unfamiliar(np.array([r[3] for r in results]), reg.band_calibration)
+    assert marks.tolist() == unfamiliar(offline.distance, reg.band_calibration).tolist() and 0 < marks.sum() < 25
+
+
 def test_streaming_model_cuts_velocities_at_dropped_frames_as_offline():
     """A camera that drops a frame now and then (a Kinect's 70 ms of 30): over the recording the
     velocities are one-sided at each gap, as in training; the stream does the same, judging gaps

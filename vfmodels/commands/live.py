@@ -139,6 +139,9 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
         print(f"{summary['frames']} frames, {summary['estimates']} forces at {summary['rate_fps']:.1f} frames/s; "
               f"latency median {summary['latency_median_ms']:.1f} ms, p95 {summary['latency_p95_ms']:.1f} ms "
               f"(from the arrival of the frame each force waited for); {summary['dropped']} frames dropped")
+        if summary["unfamiliar"]:
+            print(f"warning: {summary['unfamiliar']} of {summary['estimates']} forces came from input unlike any "
+                  "training frame (their band is widened)", file=sys.stderr)
         if recorded is not None:
             print(f"wrote {recorded}")
     return 0

@@ -32,6 +32,7 @@ from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfdata.rig import Rig
+from vfmodels.evaluation.band import unfamiliar
 from vfmodels.inference.predict import history, load_force_model, model_device
 from vfmodels.training.regressor import ForceRegressor
 
@@ -52,6 +53,7 @@ class ForceEstimate:
     beyond_n: np.ndarray  # (3,) N, how far each component lies beyond the training range (0 inside)
     # Why the stream is doubtful so far (keys of vfdata.confidence.REASONS; empty: not doubtful).
     doubtful: tuple[str, ...] = ()
+    unfamiliar: bool = False  # the frame's input is unlike training's (vfmodels.evaluation.band.unfamiliar)
 
 
 def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
@@ -68,10 +70,11 @@ class StreamingForceModel:
     """The model half of live estimation: object-frame tracks in, one frame at a time, forces out.
 
     `push(stamp_ns, points_object_mm (N, 3), visible (N,))` -> (stamp, force (3,) N, band half-width (3,)
-    N) of the previous frame, or None on the first frame; `flush()` gives the last frame's. Each frame's
-    tokens follow the recipe of training (`vfdata.clips.tokens.track_tokens`), and its force and band are
-    the regressor's (`ForceRegressor.encode_frames` / `decode_frames`, symmetry views included) on the last `window`
-    frames (None: the clip length it was trained on; 0: the state carried over the whole stream)."""
+    N, embedding distance from training's) of the previous frame, or None on the first frame; `flush()`
+    gives the last frame's. Each frame's tokens follow the recipe of training
+    (`vfdata.clips.tokens.track_tokens`), and its force and band are the regressor's
+    (`ForceRegressor.encode_frames` / `decode_frames`, symmetry views included) on the last `window` frames
+    (None: the clip length it was trained on; 0: the state carried over the whole stream)."""
 
     def __init__(self, regressor: ForceRegressor, spec: ClipSpec, rotation: np.ndarray, origin_mm: np.ndarray,
                  window: int | None = None):
@@ -87,7 +90,7 @@ class StreamingForceModel:
         self.averages: deque = deque(maxlen=3)
 
     def push(self, stamp_ns: int, points_object_mm: np.ndarray, visible: np.ndarray
-             ) -> tuple[int, np.ndarray, np.ndarray] | None:
+             ) -> tuple[int, np.ndarray, np.ndarray, float] | None:
         points, visible = np.asarray(points_object_mm, dtype=np.float64), np.asarray(visible, dtype=bool)
         self.recent.append((int(stamp_ns), points, visible))
         self.stamps.append(int(stamp_ns))
@@ -107,7 +110,7 @@ class StreamingForceModel:
         # a central difference (one-sided at the start), as over a whole recording.
         return self._estimate(len(self.recent) - 2)
 
-    def flush(self) -> tuple[int, np.ndarray, np.ndarray] | None:
+    def flush(self) -> tuple[int, np.ndarray, np.ndarray, float] | None:
         """The last frame's estimate (one-sided velocity), at the end of a stream; then resets."""
         result = None
         if len(self.recent) >= 2:
@@ -124,7 +127,7 @@ class StreamingForceModel:
         return result
 
     @torch.no_grad()
-    def _estimate(self, target: int) -> tuple[int, np.ndarray, np.ndarray]:
+    def _estimate(self, target: int) -> tuple[int, np.ndarray, np.ndarray, float]:
         recent = list(self.recent)
         # Velocities as over a whole recording: one-sided across a dropped frame (an interval over
         # GAP_FACTOR periods: a Kinect's, 70 ms of 30), at the rate of the source's usual period.
@@ -144,7 +147,7 @@ class StreamingForceModel:
             self.embeddings.append(z)
             estimate, _ = self.regressor.decode_frames(torch.cat(list(self.embeddings), dim=1))
         force, band = (field[0, -1].cpu().numpy().astype(np.float64) for field in estimate[:2])
-        return recent[target][0], mirror_y(force, side), band
+        return recent[target][0], mirror_y(force, side), band, float(estimate.distance[0, -1])
 
 
 class StreamingForceEstimator:
@@ -184,7 +187,7 @@ class StreamingForceEstimator:
         return self.engine.frame
 
     def _track(self, images: ImageStages, left: np.ndarray, stamp_ns: int
-               ) -> tuple[int, np.ndarray, np.ndarray] | None:
+               ) -> tuple[int, np.ndarray, np.ndarray, float] | None:
         result = self.engine.track(self.engine.frames, stamp_ns, left, images)
         if self.engine.offline_tracker:
             raise VisionForceError(f"tracker '{self.options.tracker}' is offline (whole clip): not for streaming")
@@ -219,11 +222,12 @@ class StreamingForceEstimator:
             self._pending = (future.result(), left, stamp_ns)
         return None if result is None else self._estimate(result, t0)
 
-    def _estimate(self, result: tuple[int, np.ndarray, np.ndarray], t0: float) -> ForceEstimate:
-        stamp, force, band = result
+    def _estimate(self, result: tuple[int, np.ndarray, np.ndarray, float], t0: float) -> ForceEstimate:
+        stamp, force, band, distance = result
         reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
+        unlike = bool(unfamiliar(np.asarray(distance), self.regressor.band_calibration))
         return ForceEstimate(stamp, force, time.perf_counter() - t0, band, self.regressor.beyond_range(force),
-                             reasons)
+                             reasons, unlike)
 
     @property
     def confidence(self) -> Confidence | None:

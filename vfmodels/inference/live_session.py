@@ -50,6 +50,7 @@ class LiveStats:
     forces: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (stamp_ns, force N) as sent
     bands: list[np.ndarray] = field(default_factory=list)  # each sent force's band half-width (3,) N
     beyond: int = 0  # estimates with a component beyond the training range
+    unfamiliar: int = 0  # estimates whose input is unlike training's (vfmodels.evaluation.band.unfamiliar)
 
     @property
     def rate_fps(self) -> float:
@@ -58,6 +59,7 @@ class LiveStats:
     def summary(self) -> dict[str, float]:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.full(1, np.nan)
         return {"frames": self.frames, "estimates": self.estimates, "dropped": self.dropped, "beyond": self.beyond,
+                "unfamiliar": self.unfamiliar,
                 "rate_fps": round(self.rate_fps, 2), "latency_median_ms": round(float(np.median(lat)), 1),
                 "latency_p95_ms": round(float(np.percentile(lat, 95)), 1)}
 
@@ -119,6 +121,7 @@ class LiveSession:
             self.stats.forces.append((stamp, force))
             self.stats.bands.append(np.asarray(estimate.band_n, dtype=np.float64))
             self.stats.beyond += int(np.any(estimate.beyond_n != 0))
+            self.stats.unfamiliar += int(estimate.unfamiliar)
             if estimate.doubtful and self.doubtful_since_ns is None:
                 self.doubtful_since_ns = stamp
                 print(f"warning: live: doubtful from frame stamp {estimate.stamp_ns}: "

@@ -74,6 +74,7 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                          object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
                                         "object_frame_kind": object_frame.kind, "camera_frame_id": camera_frame,
                                         "band": json.dumps(None if calibration is None else calibration.to_dict()),
+                                        "frames_unlike_training": str(sum(e.unfamiliar for e in estimates)),
                                         **confidence.metadata()},
                          overwrite=overwrite, camera_frame_id=camera_frame,
                          band_n=np.stack([e.band_n for e in estimates]),
