@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from vfdata.split_forces import BEYOND_MARGIN
+from vfmodels.evaluation.metrics import force_metrics
 
 COVERAGE = 0.9  # the stated share of frames inside the band
 COMPONENTS = ("fx", "fy", "fz")
@@ -155,10 +156,9 @@ def unfamiliar_metrics(pred_n: np.ndarray, true_n: np.ndarray, distance: np.ndar
     """Of test frames (M, 3) N with their distances (M,): the share whose input is unlike training's
     (beyond `limit`), the RMSE there and elsewhere (N, mean of the components; NaN without frames)."""
     def rmse(rows: np.ndarray) -> float:
-        return float(np.sqrt(np.mean((pred_n[rows] - true_n[rows]) ** 2, axis=0)).mean()) if rows.any() else math.nan
+        return force_metrics(pred_n[rows], true_n[rows])["rmse"] if rows.any() else math.nan
 
-    with np.errstate(invalid="ignore"):
-        unlike = np.asarray(distance, dtype=np.float64) > (math.inf if limit is None else limit)
+    unlike = _beyond(distance, limit)
     return {"share": float(unlike.mean()) if len(unlike) else math.nan, "frames": int(unlike.sum()),
             "rmse": rmse(unlike), "rmse_rest": rmse(~unlike)}
 
@@ -166,11 +166,13 @@ def unfamiliar_metrics(pred_n: np.ndarray, true_n: np.ndarray, distance: np.ndar
 def unfamiliar(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:
     """Frames (the shape of `distance`) whose embedding lies farther from training's than all but
     `UNFAMILIAR_SHARE` of validation's (False where unknown, or without a limit)."""
-    distance = np.asarray(distance, dtype=np.float64)
-    if calibration is None or calibration.distance_limit is None:
-        return np.zeros(distance.shape, bool)
+    return _beyond(distance, None if calibration is None else calibration.distance_limit)
+
+
+def _beyond(distance: np.ndarray, limit: float | None) -> np.ndarray:
+    """distance > limit, False where the distance is unknown (NaN) or there is no limit."""
     with np.errstate(invalid="ignore"):
-        return distance > calibration.distance_limit
+        return np.asarray(distance, dtype=np.float64) > (math.inf if limit is None else limit)
 
 
 def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE,

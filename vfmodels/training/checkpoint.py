@@ -1,4 +1,5 @@
-"""Checkpoints: reading one as data (`read_checkpoint`, `band_from_checkpoint`), and `ResumableCheckpoint`,
+"""Checkpoints: reading one as data (`read_checkpoint`, and what `ForceRegressor` keeps beside its weights:
+`band_from_checkpoint`, `reference_from_checkpoint`), and `ResumableCheckpoint`,
 Lightning's ModelCheckpoint (the best checkpoint by the monitored metric)
 whose `last.ckpt` is rewritten after every epoch.
 
@@ -49,6 +50,22 @@ def band_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> band.BandCal
         raise InputError(path, str(exc)) from None
 
 
+def reference_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The embedding reference a checkpoint holds (`force_model.embedding_reference`: mean (D,), precision
+    (D, D); `vfmodels.evaluation.familiarity`), None when it has none (a model without the causal interface,
+    too few training frames, or a checkpoint from before it); an InputError naming the file when damaged."""
+    spec = checkpoint.get("force_model")
+    values = spec.get("embedding_reference") if isinstance(spec, dict) else None
+    if values is None:
+        return None
+    mean = values.get("mean") if isinstance(values, dict) else None
+    precision = values.get("precision") if isinstance(values, dict) else None
+    if not (isinstance(mean, torch.Tensor) and isinstance(precision, torch.Tensor) and mean.ndim == 1
+            and precision.shape == (len(mean), len(mean))):
+        raise InputError(path, "embedding reference: not a mean (D,) and a precision (D, D)")
+    return mean.double(), precision.double()
+
+
 class ResumableCheckpoint(ModelCheckpoint):
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         super().on_train_epoch_end(trainer, pl_module)
@@ -65,20 +82,3 @@ class ResumableCheckpoint(ModelCheckpoint):
         # step already saved (the parent wrote a top-k checkpoint and last.ckpt with it).
         if self.save_last and not self._should_skip_saving_checkpoint(trainer):
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
-
-
-def reference_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """The embedding reference a checkpoint holds (`force_model.embedding_reference`: mean (D,), precision
-    (D, D); `vfmodels.evaluation.familiarity`), None when it has none (a model without the causal interface,
-    too few training frames, or a checkpoint from before it); an InputError naming the file when damaged."""
-    spec = checkpoint.get("force_model")
-    values = spec.get("embedding_reference") if isinstance(spec, dict) else None
-    if values is None:
-        return None
-    mean = values.get("mean") if isinstance(values, dict) else None
-    precision = values.get("precision") if isinstance(values, dict) else None
-    if not (isinstance(mean, torch.Tensor) and isinstance(precision, torch.Tensor) and mean.ndim == 1
-            and precision.shape == (len(mean), len(mean))):
-        raise InputError(path, "embedding reference: not a mean (D,) and a precision (D, D)")
-    return mean.double(), precision.double()
-

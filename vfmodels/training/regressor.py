@@ -215,12 +215,12 @@ class ForceRegressor(L.LightningModule):
         out, state = self.model.decode_frames(z, state)
         return self._estimate_of_views(self.denormalise_force(out), self.embedding_distance(z)), state
 
-    def embedding_distance(self, z: torch.Tensor) -> torch.Tensor:
+    def embedding_distance(self, z: torch.Tensor) -> torch.Tensor | None:
         """Embeddings (V * B, T, D) of `encode_frames` -> (B, T): the first (unturned) view's distance from the
-        training frames' (`vfmodels.evaluation.familiarity`); NaN without a reference."""
-        first = z.unflatten(0, (max(1, 2 * self.symmetry_turns), -1))[0]
+        training frames' (`vfmodels.evaluation.familiarity`); None without a reference."""
         if self.embedding_reference is None:
-            return torch.full(first.shape[:-1], float("nan"), dtype=first.dtype, device=first.device)
+            return None
+        first = z.unflatten(0, (max(1, 2 * self.symmetry_turns), -1))[0]
         mean, precision = (v.to(first.device) for v in self.embedding_reference)
         return familiarity.distance(first, mean, precision)
 
