@@ -4,13 +4,15 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # PyTorch: the CUDA build (2.14.1 with torchvision; its CUDA libraries make the venv about 8 GB) where
-# the disk has room for it, else the CPU build (2.13.0+cpu, a venv of about 3.5 GB). CI's clean clone
-# has about 6.5 GB free, where the CUDA build ran out of disk inside pip. `make setup TORCH=cuda` or
-# `TORCH=cpu` chooses. torchvision is left out of the CPU build: PyPI's wheels are built for the CUDA
-# torch and do not import beside the CPU one; only the optional Faster R-CNN prompt needs it.
+# the disk has room for it, else the CPU build (2.13.0+cpu: the venv with the dev extras is 2.1 GB,
+# measured 2026-12-05). CI's clean clone has had 6.5 GB free and once 2 GB; below the estimate the
+# set-up warns and tries, since a refusal would fail for certain. `make setup TORCH=cuda` or `TORCH=cpu`
+# chooses. torchvision is left out of the CPU build: PyPI's wheels are built for the CUDA torch and do
+# not import beside the CPU one; only the optional Faster R-CNN prompt needs it. open3d and Ray (1.2 GB)
+# come with `make test-slow` only (the extras `fast` and `ray`).
 TORCH ?= auto
 CUDA_FREE_KB := 8500000
-CPU_FREE_KB := 4000000
+CPU_FREE_KB := 2400000
 TORCH_CUDA := torch==2.14.1 torchvision==0.29.1
 TORCH_CPU := torch==2.13.0+cpu
 TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
@@ -28,8 +30,8 @@ $(STAMP): pyproject.toml
 		free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); kind=$(TORCH); \
 		if [ $$kind = auto ]; then kind=cpu; [ $$free -ge $(CUDA_FREE_KB) ] && kind=cuda; fi; \
 		need=$(CPU_FREE_KB); [ $$kind = cuda ] && need=$(CUDA_FREE_KB); \
-		if [ $$free -lt $$need ]; then echo "error: $(VENV_DIR): PyTorch's $$kind build needs about" \
-			"$$((need / 1000000)) GB free, $$((free / 1000000)) GB free"; exit 1; fi; \
+		if [ $$free -lt $$need ]; then echo "warning: $(VENV_DIR): the set-up with PyTorch's $$kind build" \
+			"needs about $$((need / 100000))00 MB, $$((free / 1000)) MB free; trying"; fi; \
 		echo "PyTorch: the $$kind build ($$((free / 1000000)) GB free)"; \
 		if [ $$kind = cuda ]; then $(PIP) $(TORCH_CUDA); \
 		else $(PIP) $(TORCH_CPU) 2>/dev/null || $(PIP) --extra-index-url $(TORCH_CPU_INDEX) $(TORCH_CPU); fi; }
@@ -46,6 +48,7 @@ test: $(STAMP)
 
 # The slow tier: whole pipelines on simulated and real recordings, DDP, Ray, every config.
 test-slow: $(STAMP)
+	$(PIP) -e '.[dev,fast,ray]'
 	$(BIN)/python -m pytest -q -m slow
 
 lint: $(STAMP)
