@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 pytest.importorskip("foxglove", reason="the live extra (foxglove-sdk) is not installed")
 websockets = pytest.importorskip("websockets")
@@ -25,7 +26,12 @@ from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder  # n
 from vfdata.errors import InputError, OutputError, OutputExistsError  # noqa: E402
 from vfdata.foxglove_server import FoxgloveServer  # noqa: E402
 from vfdata.recording import Recording, layout  # noqa: E402
-from vfdata.recording.derived import DerivedRecording, read_force_band, read_force_estimate  # noqa: E402
+from vfdata.recording.derived import (  # noqa: E402
+    DerivedRecording,
+    read_force_band,
+    read_force_estimate,
+    read_force_unlike,
+)
 from vfdata.recording.inspect import check_file  # noqa: E402
 from vfdata.recording.messages import WrenchStamped, decode  # noqa: E402
 from vfdata.sim import synthesize  # noqa: E402
@@ -49,7 +55,8 @@ def ckpt(tmp_path_factory) -> Path:
     """An untrained model with a band calibration (as training leaves it) and a training range around 0 N."""
     regressor = _regressor()
     regressor.band_calibration = BandCalibration((0.2, 0.3, 0.4), (5.0, 5.0, 5.0), (0.5, 0.5, 0.5), 0.9, 300,
-                                                 (-0.05, -0.05, -0.05), (0.05, 0.05, 0.05))
+                                                 (-0.05, -0.05, -0.05), (0.05, 0.05, 0.05), distance_limit=4.0)
+    regressor.embedding_reference = (torch.zeros(32, dtype=torch.float64), torch.eye(32, dtype=torch.float64))
     return _save_checkpoint(regressor, tmp_path_factory.mktemp("ckpt") / "m.ckpt",
                             {"spec": {"input": "tracks", "fps": 30.0}})
 
@@ -132,7 +139,7 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
     # The whole image's depth, as offline processing (the live default's region of interest: below).
     args = _args(recording, ckpt, record=record, wait_for_client=20, speed=1.0, depth_roi_margin=0)
     code, client = _serve(args, (layout.FORCE_ESTIMATE, layout.TRACKING_POINTS, layout.FORCE_BAND,
-                                 layout.FORCE_BEYOND))
+                                 layout.FORCE_BEYOND, layout.FORCE_UNLIKE))
     assert code == 0 and client.closed_cleanly
     channel = client.advertised[layout.FORCE_ESTIMATE]
     assert (channel["encoding"], channel["schemaName"], channel["schemaEncoding"]) == \
@@ -155,6 +162,13 @@ def test_live_serves_the_offline_forces_and_records_them(recording, ckpt, tmp_pa
         np.testing.assert_array_equal([w.stamp_ns for w in served], times)
         np.testing.assert_allclose(np.array([w.force for w in served]), expected, rtol=1e-4, atol=1e-4)
     assert (offline_band >= [0.2, 0.3, 0.4]).all() and (offline_beyond != 0).any()
+    # and how unlike training's each frame's input is, a bare number logged at the estimate's stamp
+    assert client.advertised[layout.FORCE_UNLIKE]["schemaName"] == "std_msgs/msg/Float64"
+    served = client.of(layout.FORCE_UNLIKE)
+    np.testing.assert_array_equal([t for t, _ in served], times)
+    offline_unlike = read_force_unlike(offline.force_mcap)[1]
+    assert np.isfinite(offline_unlike).all() and (offline_unlike > 0).all()
+    np.testing.assert_allclose([decode("std_msgs/msg/Float64", p).data for _, p in served], offline_unlike, rtol=1e-4)
 
     # The recording holds everything served, in the files' layout, and reads as a force file.
     rec_times, rec_forces = read_force_estimate(record)

@@ -26,13 +26,14 @@ from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import clip_starts, segments
 from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.recording import Recording
-from vfdata.recording.derived import read_force_band, read_force_estimate, read_tracks
+from vfdata.recording.derived import read_force_band, read_force_estimate, read_force_unlike, read_tracks
 from vfdata.sim import synthesize
 from vfmodels import ForceRegressor, SetTransformerLSTM
 from vfmodels.evaluation.band import BandCalibration
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.experiment.runner import test_predictions as experiment_test
 
+LIMIT = 4.0  # the embedding distance beyond which a frame is unlike training (no stretch: no distance_ref)
 FRAMES = 20  # clips of 16 frames every 4: frames 0-15 and 19 are scored from the clip that ends on them
 SPEC = {"input": "tracks", "frame": "object", "features": "polar_z_disp_vel", "clip_frames": 16, "stride": 4,
         "mirror_augment": True, "rotate_augment": True, "fps": 30.0}  # configs/visionforce.yaml's
@@ -68,7 +69,8 @@ def ckpt(root, spec) -> Path:
     regressor.set_normalisation(torch.zeros(len(scales)), torch.tensor(scales),
                                 torch.tensor([0.1, -0.2, 0.5]), torch.tensor([1.0, 2.0, 0.5]))
     regressor.band_calibration = BandCalibration((0.3, 0.5, 0.2), (20.0, 10.0, 40.0), (0.0, 0.0, 1.0), 0.9, 500,
-                                                 (-0.5, -0.5, 0.46), (0.5, 0.5, 0.47))
+                                                 (-0.5, -0.5, 0.46), (0.5, 0.5, 0.47), distance_limit=LIMIT)
+    regressor.embedding_reference = (torch.zeros(32, dtype=torch.float64), torch.eye(32, dtype=torch.float64))
     checkpoint = {"state_dict": regressor.state_dict(), "hyper_parameters": dict(regressor.hparams),
                   "datamodule_hyper_parameters": {"spec": spec}, "ForceDataModule": {"tracker": "klt"}}
     regressor.on_save_checkpoint(checkpoint)
@@ -167,11 +169,19 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
     files = {"vfdata predict --stream": root / "stream" / "mini_002.force.mcap"}
     if "vfdata live --record" in paths:
         files["vfdata live --record"] = root / "live.mcap"
+    _, offline_unlike = read_force_unlike(predicted[0])
+    # the untrained model's embeddings are saturated: each frame lies sqrt(32) from the reference's zero mean
+    np.testing.assert_allclose(offline_unlike, np.sqrt(32) / LIMIT, rtol=1e-5)
+    with Recording.open(predicted[0]) as rec:
+        assert rec.metadata_records["visionforce.derived"]["frames_unlike_training"] == str(FRAMES)
     for name, path in files.items():
         times, band, beyond = read_force_band(path)
         np.testing.assert_array_equal(times, offline_times, err_msg=name)
         np.testing.assert_allclose(band, offline_band, rtol=0, atol=1e-4, err_msg=name)
         np.testing.assert_array_equal(beyond != 0, offline_beyond != 0, err_msg=name)
+        times, unlike = read_force_unlike(path)
+        np.testing.assert_array_equal(times, offline_times, err_msg=name)
+        np.testing.assert_allclose(unlike, offline_unlike, rtol=1e-4, err_msg=name)
 
     # The test scores each frame once, from the clip it ends latest in; `vfdata predict` runs the latest
     # 16 frames ending at it. Where those are the same clip, the forces are the same.
@@ -180,6 +190,7 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
     assert same.sum() == 17 and not same[16:19].any()
     np.testing.assert_allclose(offline[same], scored["pred"][same], rtol=0, atol=1e-4)
     np.testing.assert_allclose(offline_band[same], scored["band"][same], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(read_force_unlike(predicted[0])[1][same], scored["distance"][same] / LIMIT, rtol=1e-4)
     # elsewhere the test's clip is shorter: close, not equal
     assert 0 < np.abs(offline[~same] - scored["pred"][~same]).max() < 0.5
     # and the RMSE `vfdata predict` prints is its forces' against the sensor, as the experiment's metric

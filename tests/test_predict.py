@@ -14,7 +14,14 @@ from vfdata.clips.tokens import point_tokens, recording_side, top_bottom, track_
 from vfdata.errors import InputError, VisionForceError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording, layout
-from vfdata.recording.derived import Tracks, read_force_band, read_force_estimate, read_tracks, write_force_estimate
+from vfdata.recording.derived import (
+    Tracks,
+    read_force_band,
+    read_force_estimate,
+    read_force_unlike,
+    read_tracks,
+    write_force_estimate,
+)
 from vfmodels import ForceRegressor, SetTransformerLSTM
 from vfmodels.inference import overlay, predict
 from vfmodels.inference.live import StreamingForceEstimator, StreamingForceModel
@@ -427,6 +434,22 @@ def test_force_mcap_round_trip(tmp_path):
     np.testing.assert_allclose(o, beyond)
     with Recording.open(path) as rec:
         assert rec.topics[layout.FORCE_BAND].msgtype == "geometry_msgs/msg/WrenchStamped"
+    assert read_force_unlike(path) is None  # written without it: none to read
+
+    unlike = np.linspace(0.2, 1.8, len(times))
+    unlike[1] = np.nan  # a frame whose distance is unknown
+    path = write_force_estimate(tmp_path / "u.force.mcap", times, force, frame, {}, band_n=band, beyond_n=beyond,
+                                unlike=unlike)
+    t, u = read_force_unlike(path)
+    np.testing.assert_array_equal(t, times)  # logged at its estimate's stamp
+    np.testing.assert_array_equal(u, unlike)
+    with Recording.open(path) as rec:
+        info = rec.topics[layout.FORCE_UNLIKE]
+        assert info.msgtype == "std_msgs/msg/Float64" and info.count == len(times)
+        payload = next(rec.payloads(layout.FORCE_UNLIKE))[1]
+    # ROS 2's own definition reads the same number (rosbags' typestore)
+    from rosbags.typesys import Stores, get_typestore
+    assert get_typestore(Stores.ROS2_HUMBLE).deserialize_cdr(bytes(payload), "std_msgs/msg/Float64").data == unlike[0]
 
 
 @pytest.mark.slow

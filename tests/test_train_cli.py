@@ -97,13 +97,16 @@ def test_fit_then_test_and_predict_best(tmp_path, capsys):
     assert "test/rmse_fz" in metrics and "test/mean/rmse" in metrics
     assert "test/band/coverage_fz" in metrics and "test/band/half_width_fz" in metrics  # the band, calibrated in fit
     train.main(["predict", *run, "--ckpt_path=best", f"--prediction_writer.output_dir={tmp_path / 'pred'}"])
-    from vfdata.recording.derived import read_force_band, read_force_estimate
+    from vfdata.recording.derived import read_force_band, read_force_estimate, read_force_unlike
 
     times, force = read_force_estimate(tmp_path / "pred" / "synthetic_000.force.mcap")
     assert len(times) == 16 and force.shape == (16, 3) and np.isfinite(force).all()
     band_times, band, beyond = read_force_band(tmp_path / "pred" / "synthetic_000.force.mcap")
     np.testing.assert_array_equal(band_times, times)
     assert (band > 0).all() and beyond.shape == (16, 3)
+    unlike_times, unlike = read_force_unlike(tmp_path / "pred" / "synthetic_000.force.mcap")
+    np.testing.assert_array_equal(unlike_times, times)
+    assert unlike.shape == (16,)  # NaN here: the synthetic set is too small for an embedding reference
 
 
 def test_best_without_checkpoints_is_a_clear_error(tmp_path, capsys):

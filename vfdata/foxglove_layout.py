@@ -2,7 +2,8 @@
 laid over it and the tracked points projected, the tissue cloud and tracked points in 3D in the object
 frame, Fx, Fy, Fz of `/force/estimate` over time, and below them how sure each is: the half-width of
 its calibrated band (`/force/estimate/band`) and how far it lies beyond the training range
-(`/force/estimate/beyond`), N. The same layout serves `vfdata live` and the
+(`/force/estimate/beyond`), N, and how unlike training's its input is (`/force/estimate/unlike`,
+> 1: unlike). The same layout serves `vfdata live` and the
 files (a recording opened with its derived and force files), since both have the same topics.
 
     python -m vfdata.foxglove_layout > docs/foxglove_layout.json      # Foxglove: Layouts -> Import
@@ -47,13 +48,18 @@ def layout_json(rgbd: bool = False) -> str:
         paths=[fl.PlotSeries(value=f"{layout.FORCE_ESTIMATE}.wrench.force.{axis}", label=f"F{axis}",
                              timestamp_method="headerStamp", enabled=True) for axis in "xyz"],
         show_legend=True))
-    sure = fl.PlotPanel(title="how sure: 90% band half-width (solid) and beyond training (dashed), N",
+    # The unlike-training number has no header: its log time is the estimate's stamp.
+    sure = fl.PlotPanel(title="how sure: 90% band half-width (solid), beyond training (dashed), N; "
+                              "unlike training (dotted, right axis, > 1: unlike)",
                         config=fl.PlotConfig(paths=[
                             *(fl.PlotSeries(value=f"{layout.FORCE_BAND}.wrench.force.{axis}", label=f"band F{axis}",
                                             timestamp_method="headerStamp", enabled=True) for axis in "xyz"),
                             *(fl.PlotSeries(value=f"{layout.FORCE_BEYOND}.wrench.force.{axis}",
                                             label=f"beyond F{axis}", timestamp_method="headerStamp", enabled=True,
-                                            line_style="dashed") for axis in "xyz")],
+                                            line_style="dashed") for axis in "xyz"),
+                            fl.PlotSeries(value=f"{layout.FORCE_UNLIKE}.data", label="unlike training",
+                                          timestamp_method="receiveTime", enabled=True, line_style="dotted",
+                                          use_right_y_axis=True)],
                             show_legend=True))
     content = fl.SplitContainer(direction="row", items=[
         fl.SplitItem(proportion=1.2, content=image),

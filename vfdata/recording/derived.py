@@ -8,8 +8,9 @@ z float32 in metres in the object frame `tissue_object`: REP 103) and `/tracking
 `visionforce.derived` metadata (provenance, the object frame, the stage rates). A force file holds
 `/force/estimate` (WrenchStamped in the object frame, N; torque is not estimated: zeros, with
 `torque_estimated: false` in its metadata), beside it `/force/estimate/band` (the half-width of each
-component's calibrated band, N) and `/force/estimate/beyond` (how far each component lies beyond the
-training range, N) when the model gives them, and the same `/tf_static`.
+component's calibrated band, N), `/force/estimate/beyond` (how far each component lies beyond the
+training range, N) and `/force/estimate/unlike` (Float64: how unlike training's the frame's input is,
+> 1 beyond the limit) when the model gives them, and the same `/tf_static`.
 
 Arrays cross this module's edge in the project's units (mm, N, ns). Files written before REP 103/118
 units (`derived_version` 1 or absent: clouds in mm, depth in 0.1 mm) read the same.
@@ -29,7 +30,15 @@ from vfdata.confidence import Confidence
 from vfdata.errors import InputError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
-from vfdata.recording.messages import CompressedImage, Image, PointCloud2, TFMessage, TransformStamped, WrenchStamped
+from vfdata.recording.messages import (
+    CompressedImage,
+    Float64,
+    Image,
+    PointCloud2,
+    TFMessage,
+    TransformStamped,
+    WrenchStamped,
+)
 from vfdata.recording.reader import Recording
 from vfdata.recording.writer import McapWriter
 
@@ -226,10 +235,11 @@ class DerivedWriter:
 def write_force_estimate(path: str | Path, times_ns: np.ndarray, force_object_n: np.ndarray, frame: ObjectFrame,
                          metadata: dict[str, str], overwrite: bool = False,
                          camera_frame_id: str = layout.LEFT_FRAME, band_n: np.ndarray | None = None,
-                         beyond_n: np.ndarray | None = None) -> Path:
+                         beyond_n: np.ndarray | None = None, unlike: np.ndarray | None = None) -> Path:
     """`/force/estimate` (WrenchStamped in `tissue_object`, N, torque zeros: not estimated), with
-    `band_n` (T, 3) N the band's half-width on `/force/estimate/band` and `beyond_n` (T, 3) N the
-    distance beyond the training range on `/force/estimate/beyond` (each stamped like its estimate),
+    `band_n` (T, 3) N the band's half-width on `/force/estimate/band`, `beyond_n` (T, 3) N the
+    distance beyond the training range on `/force/estimate/beyond` and `unlike` (T,) the embedding
+    distance over its limit on `/force/estimate/unlike` (each stamped or logged like its estimate),
     and the object frame on /tf_static (child of `camera_frame_id`)."""
     times_ns = np.asarray(times_ns, dtype=np.int64)
     series = [(layout.FORCE_ESTIMATE, force_object_n), (layout.FORCE_BAND, band_n), (layout.FORCE_BEYOND, beyond_n)]
@@ -240,6 +250,8 @@ def write_force_estimate(path: str | Path, times_ns: np.ndarray, force_object_n:
             for topic, values in series:
                 if values is not None:
                     writer.write(topic, wrench_of(int(stamp), values[i]))
+            if unlike is not None:
+                writer.write(layout.FORCE_UNLIKE, Float64(float(unlike[i])), log_time_ns=int(stamp))
         writer.add_metadata(layout.DERIVED_METADATA, {
             **{k: str(v) for k, v in metadata.items()}, "object_frame": json.dumps(frame.to_dict()),
             "torque_estimated": "false", "derived_version": str(DERIVED_VERSION)})
@@ -435,6 +447,16 @@ def read_force_band(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
         raise InputError(Path(path), f"{len(half)} {layout.FORCE_BAND} messages but {len(beyond)} "
                                      f"{layout.FORCE_BEYOND}")
     return times, half, beyond
+
+
+def read_force_unlike(path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(log times (T,) ns, how unlike training's each frame's input is (T,): the embedding distance over
+    its limit, > 1 unlike training, NaN unknown) of a force file, None when it has no such topic."""
+    with Recording.open(path) as rec:
+        if not rec.has(layout.FORCE_UNLIKE):
+            return None
+        pairs = [(t, m.data) for t, m in rec.messages(layout.FORCE_UNLIKE)]
+    return (np.array([p[0] for p in pairs], dtype=np.int64), np.array([p[1] for p in pairs], dtype=np.float64))
 
 
 def _series(rec: Recording, topic: str) -> tuple[np.ndarray, np.ndarray]:

@@ -62,9 +62,12 @@ TRACKING_POINTS = "/tracking/points"
 FORCE_ESTIMATE = "/force/estimate"
 # Beside each estimate (same stamp, object frame, N; torque zeros): the half-width of its calibrated band
 # (the estimate +- it covers the stated share of frames, 90%; NaN when the model has no calibration)
-# and how far each component lies beyond the training forces' range (signed, 0 inside).
+# and how far each component lies beyond the training forces' range (signed, 0 inside). Beside them, a
+# bare number (log time = the estimate's stamp): how unlike training's the frame's input is, its
+# embedding distance over the limit that 99% of validation's frames keep within (> 1: unlike training).
 FORCE_BAND = "/force/estimate/band"
 FORCE_BEYOND = "/force/estimate/beyond"
+FORCE_UNLIKE = "/force/estimate/unlike"
 
 DERIVED_TOPICS: dict[str, str] = {
     TISSUE_MASK: "sensor_msgs/msg/CompressedImage",
@@ -74,6 +77,7 @@ DERIVED_TOPICS: dict[str, str] = {
     FORCE_ESTIMATE: "geometry_msgs/msg/WrenchStamped",
     FORCE_BAND: "geometry_msgs/msg/WrenchStamped",
     FORCE_BEYOND: "geometry_msgs/msg/WrenchStamped",
+    FORCE_UNLIKE: "std_msgs/msg/Float64",
     TF_STATIC: "tf2_msgs/msg/TFMessage",
 }
 
@@ -91,6 +95,7 @@ LIVE_TOPICS: dict[str, str] = {
     FORCE_ESTIMATE: DERIVED_TOPICS[FORCE_ESTIMATE],
     FORCE_BAND: DERIVED_TOPICS[FORCE_BAND],
     FORCE_BEYOND: DERIVED_TOPICS[FORCE_BEYOND],
+    FORCE_UNLIKE: DERIVED_TOPICS[FORCE_UNLIKE],
     TF: "tf2_msgs/msg/TFMessage",
 }
 

@@ -148,6 +148,23 @@ class CameraInfo:
 
 
 @dataclass
+class Float64:
+    """A bare number, no header: its time is the MCAP message's log time (`/force/estimate/unlike`)."""
+
+    msgtype = "std_msgs/msg/Float64"
+    data: float
+
+    def encode(self) -> bytes:
+        w = CdrWriter()
+        w.float64(self.data)
+        return w.getvalue()
+
+    @classmethod
+    def decode(cls, payload: bytes | memoryview) -> Float64:
+        return cls(CdrReader(payload).float64())
+
+
+@dataclass
 class WrenchStamped:
     msgtype = "geometry_msgs/msg/WrenchStamped"
     stamp_ns: int
@@ -296,7 +313,7 @@ class PointCloud2:
 MESSAGE_TYPES = {
     cls.msgtype: cls
     for cls in (
-        CompressedImage, Image, CameraInfo, WrenchStamped, PoseStamped, TransformStamped, TFMessage,
+        CompressedImage, Image, CameraInfo, Float64, WrenchStamped, PoseStamped, TransformStamped, TFMessage,
         PointCloud2,
     )
 }

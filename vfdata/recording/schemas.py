@@ -7,6 +7,7 @@ from __future__ import annotations
 
 _DEFS: dict[str, str] = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "std_msgs/Float64": "float64 data\n",
     "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
     "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z\n",
@@ -43,6 +44,7 @@ _DEFS: dict[str, str] = {
 
 # Which definitions each type pulls in, in the order they are appended.
 _DEPS: dict[str, list[str]] = {
+    "std_msgs/Float64": [],
     "geometry_msgs/PoseStamped": [
         "std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose", "geometry_msgs/Point",
         "geometry_msgs/Quaternion",

@@ -169,6 +169,14 @@ def unfamiliar(distance: np.ndarray, calibration: BandCalibration | None) -> np.
     return _beyond(distance, None if calibration is None else calibration.distance_limit)
 
 
+def unlikeness(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:
+    """How unlike training's each frame's input is: its embedding distance over `distance_limit` (> 1:
+    `unfamiliar`), NaN where the distance is unknown or there is no limit (`/force/estimate/unlike`)."""
+    limit = None if calibration is None else calibration.distance_limit
+    distance = np.asarray(distance, dtype=np.float64)
+    return distance / limit if limit else np.full(distance.shape, np.nan)
+
+
 def _beyond(distance: np.ndarray, limit: float | None) -> np.ndarray:
     """distance > limit, False where the distance is unknown (NaN) or there is no limit."""
     with np.errstate(invalid="ignore"):

@@ -32,7 +32,7 @@ from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfdata.rig import Rig
-from vfmodels.evaluation.band import unfamiliar
+from vfmodels.evaluation.band import unfamiliar, unlikeness
 from vfmodels.inference.predict import history, load_force_model, model_device
 from vfmodels.training.regressor import ForceRegressor
 
@@ -54,6 +54,7 @@ class ForceEstimate:
     # Why the stream is doubtful so far (keys of vfdata.confidence.REASONS; empty: not doubtful).
     doubtful: tuple[str, ...] = ()
     unfamiliar: bool = False  # the frame's input is unlike training's (vfmodels.evaluation.band.unfamiliar)
+    unlike: float = float("nan")  # its embedding distance over the limit (> 1: unfamiliar; NaN: unknown)
 
 
 def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
@@ -225,9 +226,10 @@ class StreamingForceEstimator:
     def _estimate(self, result: tuple[int, np.ndarray, np.ndarray, float], t0: float) -> ForceEstimate:
         stamp, force, band, distance = result
         reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
-        unlike = bool(unfamiliar(np.asarray(distance), self.regressor.band_calibration))
+        calibration = self.regressor.band_calibration
         return ForceEstimate(stamp, force, time.perf_counter() - t0, band, self.regressor.beyond_range(force),
-                             reasons, unlike)
+                             reasons, bool(unfamiliar(np.asarray(distance), calibration)),
+                             float(unlikeness(np.asarray(distance), calibration)))
 
     @property
     def confidence(self) -> Confidence | None:

@@ -7,7 +7,8 @@ Per tracked frame it serves the source rig's view (`vfdata.rig`: the left image,
 `/tissue/points` and `/tracking/points` (object frame, m), the object frame on `/tf`, and the force of
 each frame on `/force/estimate` as soon as it is known (one frame later: its velocity is a central
 difference; two with `pipelined`), with its band's half-width on `/force/estimate/band` and its
-distance beyond the training range on `/force/estimate/beyond` (N; `vfmodels.evaluation.band`). The force goes
+distance beyond the training range on `/force/estimate/beyond` (N; `vfmodels.evaluation.band`) and how unlike
+training's its input is on `/force/estimate/unlike` (> 1: unlike training). The force goes
 first, the pictures after it, so drawing them never delays a force.
 
 Latency is measured from the arrival of the frame the estimate waited for (the one after the
@@ -34,6 +35,7 @@ from vfdata.recording.derived import (
     object_tf,
     wrench_of,
 )
+from vfdata.recording.messages import Float64
 from vfdata.sources import LiveFrame
 from vfmodels.inference.live import ForceEstimate, StreamingForceEstimator
 
@@ -114,6 +116,7 @@ class LiveSession:
             sent = time.perf_counter()
             self.server.publish(layout.FORCE_BAND, wrench_of(stamp, estimate.band_n))
             self.server.publish(layout.FORCE_BEYOND, wrench_of(stamp, estimate.beyond_n))
+            self.server.publish(layout.FORCE_UNLIKE, Float64(estimate.unlike), log_time_ns=stamp)
             arrival = self._arrivals.pop(int(estimate.stamp_ns), None)
             if arrival is not None:
                 self.stats.latency_ms.append(1000.0 * (sent - arrival))

@@ -5,8 +5,9 @@ mask, cloud, object frame, tracks: `vfdata.engine`), keeps the derived recording
 turns the tracks into forces with the trained model, and writes
 - `<id>.force.mcap`: `/force/estimate` (WrenchStamped in the object frame `tissue_object`, N), beside it
   `/force/estimate/band` (the half-width of each component's calibrated 90% band, N: `vfmodels.evaluation.band`)
-  and `/force/estimate/beyond` (how far each component lies beyond the training forces' range, N), and
-  the object frame on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
+  `/force/estimate/beyond` (how far each component lies beyond the training forces' range, N) and
+  `/force/estimate/unlike` (how unlike training's each frame's input is: > 1 unlike), and the object frame
+  on `/tf_static` (`vfdata.recording.derived.write_force_estimate`);
 - `<id>.force.png`: Fx, Fy, Fz against the frame index, the band shaded and frames beyond training
   marked, with the measured force when there is one;
 - `<id>.overlay.mp4`: the paper's Fig. 8, the force drawn on the left image at the tissue origin, with
@@ -47,7 +48,7 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
-from vfmodels.evaluation.band import band_metrics, describe, unfamiliar
+from vfmodels.evaluation.band import band_metrics, describe, unfamiliar, unlikeness
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
 from vfmodels.reports.figures import plot_force_series
@@ -251,7 +252,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
             "frames_beyond_training": str(frames_beyond), "frames_unlike_training": str(int(unlike.sum()))}
     force_mcap = write_force_estimate(paths["force"], tracks.times_ns, force, tracks.frame, meta, overwrite=overwrite,
                                       camera_frame_id=tracks.metadata.camera_frame_id, band_n=estimate.band_n,
-                                      beyond_n=beyond)
+                                      beyond_n=beyond, unlike=unlikeness(estimate.distance, calibration))
     with Recording.open(src) as rec:
         measured = object_force_at(rec, tracks.times_ns) if rec.has(layout.WRENCH) else None
         stem = src.name.removesuffix(".mcap")

@@ -78,7 +78,8 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                                         **confidence.metadata()},
                          overwrite=overwrite, camera_frame_id=camera_frame,
                          band_n=np.stack([e.band_n for e in estimates]),
-                         beyond_n=np.stack([e.beyond_n for e in estimates]))
+                         beyond_n=np.stack([e.beyond_n for e in estimates]),
+                         unlike=np.array([e.unlike for e in estimates]))
     return StreamResult(path, n, len(estimates), confidence, np.array(latencies[2:]) * 1000.0,
                         {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()},
                         {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()})

@@ -22,6 +22,7 @@ from vfdata.errors import InputError, OutputExistsError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
+from vfmodels.evaluation.band import unlikeness
 
 FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread", "distance")
 VECTORS = ("pred", "true", "band", "spread")  # (M, 3) N
@@ -128,6 +129,7 @@ class ForceEstimateWriter(PredictionCollector):
                                  {"stage": "train.py predict", "model": model, "recording": rid,
                                   "source": str(entry.processed if entry else "")}, overwrite=self.overwrite,
                                  camera_frame_id=camera, band_n=frames["band"][rows],
-                                 beyond_n=pl_module.beyond_range(frames["pred"][rows]))
+                                 beyond_n=pl_module.beyond_range(frames["pred"][rows]),
+                                 unlike=unlikeness(frames["distance"][rows], pl_module.band_calibration))
             self.written.append(path)
             rank_zero_info(f"wrote {path} ({int(rows.sum())} frames)")
