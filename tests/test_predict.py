@@ -94,6 +94,14 @@ def test_overlay_video_writes_a_readable_mp4(tmp_path):
     assert not list(tmp_path.glob("*.partial*"))
 
 
+def test_overlay_label_says_how_sure():
+    force = np.array([3.0, 0.0, 4.0])
+    assert predict.overlay_label(7, force, None, False, False) == "frame 7  |F| = 5.00 N"
+    assert predict.overlay_label(7, force, np.array([0.41, 1.0, 2.25]), True, True) == \
+        "frame 7  |F| = 5.00 N  band +-0.4/1.0/2.2 N  BEYOND TRAINING  UNLIKE TRAINING"
+    assert predict.overlay_label(0, force, np.full(3, np.nan), False, True) == "frame 0  |F| = 5.00 N  UNLIKE TRAINING"
+
+
 def test_force_series_plot(tmp_path):
     t = np.arange(50)
     force = np.stack([np.sin(t / 5), np.cos(t / 5), t / 50], axis=1)

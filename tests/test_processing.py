@@ -229,11 +229,12 @@ def test_a_derived_file_reads_like_a_recording(processed):
 
 def test_the_foxglove_layout_names_what_the_files_hold(recording, processed):
     """docs/foxglove_layout.json (a recording and its derived file opened together) names only topics
-    the two files have (and the estimate, its band and its distance beyond training of a .force.mcap),
+    the two files have (and the estimate, its band, its distance beyond training and how unlike training's
+    its input is, of a .force.mcap),
     wherever in the layout they appear."""
     layout_file = json.loads((Path(__file__).resolve().parents[1] / "docs" / "foxglove_layout.json").read_text())
     topics = {*Recording.open(recording).topics, *Recording.open(processed).topics, layout.FORCE_ESTIMATE,
-              layout.FORCE_BAND, layout.FORCE_BEYOND}
+              layout.FORCE_BAND, layout.FORCE_BEYOND, layout.FORCE_UNLIKE}
     named = set()
 
     def walk(node) -> None:

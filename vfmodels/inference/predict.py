@@ -263,7 +263,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
                                  band_n=estimate.band_n, beyond_n=beyond, unfamiliar=unlike,
                                  coverage=None if calibration is None else calibration.coverage)
         video_path = write_overlay_video(rec, paths["video"], tracks, force, measured, progress,
-                                         band_n=estimate.band_n, beyond_n=beyond) if video else None
+                                         band_n=estimate.band_n, beyond_n=beyond, unfamiliar=unlike) if video else None
     known = np.zeros(0, bool) if measured is None else np.isfinite(measured).all(axis=1)
     metrics = force_metrics(force[known], measured[known]) if known.sum() > 1 else None
     coverage = band_metrics(force[known], measured[known], estimate.band_n[known]) \
@@ -275,10 +275,11 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,
                         measured_object_n: np.ndarray | None, progress: bool = True, band_n: np.ndarray | None = None,
-                        beyond_n: np.ndarray | None = None) -> Path:
+                        beyond_n: np.ndarray | None = None, unfamiliar: np.ndarray | None = None) -> Path:
     """The overlay video of a recording: the estimated (and measured) force at the object origin; its
     label gives |F| and, with `band_n` (T, 3) N, the band's half-width of each component, and says when
-    a component lies beyond the training range (`beyond_n` (T, 3) N nonzero)."""
+    a component lies beyond the training range (`beyond_n` (T, 3) N nonzero) or the input is unlike
+    training's (`unfamiliar` (T,) bool)."""
     frame: ObjectFrame = tracks.frame
     force_cam = force_to_camera(force_object_n, frame.rotation)
     measured_cam = None if measured_object_n is None else force_to_camera(measured_object_n, frame.rotation)
@@ -291,16 +292,23 @@ def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object
     with OverlayVideo(path, frame_rate(times)) as writer:
         for i in tqdm(range(len(force_cam)), desc="overlay video", unit="frame", disable=not progress):
             image = rig.image(rec.frame_index_at(int(times[i])))
-            label = f"frame {i}  |F| = {np.linalg.norm(force_object_n[i]):.2f} N"
-            if band_n is not None and np.isfinite(band_n[i]).all():
-                label += "  band +-" + "/".join(f"{b:.1f}" for b in band_n[i]) + " N"
-            if beyond_n is not None and (beyond_n[i] != 0).any():
-                label += "  BEYOND TRAINING"
+            label = overlay_label(i, force_object_n[i], None if band_n is None else band_n[i],
+                                  beyond_n is not None and bool((beyond_n[i] != 0).any()),
+                                  unfamiliar is not None and bool(unfamiliar[i]))
             writer.write(draw_force_overlay(image, origin_uv, force_cam[i], scale, label,
                                             None if measured_cam is None else measured_cam[i]))
     return writer.path
 
 
+def overlay_label(i: int, force_n: np.ndarray, band_n: np.ndarray | None, beyond: bool, unlike: bool) -> str:
+    """Frame i's label in the overlay video: |F| (N), the band's half-widths (N) when calibrated, and the
+    marks of a force beyond the training range and of an input unlike training's."""
+    label = f"frame {i}  |F| = {np.linalg.norm(force_n):.2f} N"
+    if band_n is not None and np.isfinite(band_n).all():
+        label += "  band +-" + "/".join(f"{b:.1f}" for b in band_n) + " N"
+    return label + ("  BEYOND TRAINING" if beyond else "") + ("  UNLIKE TRAINING" if unlike else "")
+
+
 __all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "history",
-           "load_force_model", "predict_recording", "prediction_tracker", "trained_tracker", "windowed_estimate",
-           "windowed_forces", "write_overlay_video"]
+           "load_force_model", "overlay_label", "predict_recording", "prediction_tracker", "trained_tracker",
+           "windowed_estimate", "windowed_forces", "write_overlay_video"]
