@@ -4,15 +4,18 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # PyTorch: the CUDA build (2.14.1 with torchvision; its CUDA libraries make the venv about 8 GB) where
-# the disk has room for it, else the CPU build (2.13.0+cpu: the venv with the dev extras is 2.1 GB,
-# measured 2026-12-05). CI's clean clone has had 6.5 GB free and once 2 GB; below the estimate the
-# set-up warns and tries, since a refusal would fail for certain. `make setup TORCH=cuda` or `TORCH=cpu`
-# chooses. torchvision is left out of the CPU build: PyPI's wheels are built for the CUDA torch and do
-# not import beside the CPU one; only the optional Faster R-CNN prompt needs it. open3d and Ray (1.2 GB)
-# come with `make test-slow` only (the extras `fast` and `ray`).
+# the disk has room for it, else the CPU build (2.13.0+cpu: a venv of 1.85 GB with the dev extras,
+# measured 2026-12-05, and a test run needs 0.3 GB more). CI's clean clone has had 6.5 GB free and once
+# 2 GB; below the estimate the set-up warns and tries, since a refusal would fail for certain. `make
+# setup TORCH=cuda` or `TORCH=cpu` chooses. torchvision is left out of the CPU build: PyPI's wheels are
+# built for the CUDA torch and do not import beside the CPU one; only the optional Faster R-CNN prompt
+# needs it. The LeRobot formats (0.3 GB) come where the disk has room; open3d and Ray (1.2 GB) with
+# `make test-slow` only (the extras `fast` and `ray`).
 TORCH ?= auto
 CUDA_FREE_KB := 8500000
-CPU_FREE_KB := 2400000
+CPU_FREE_KB := 2200000
+# pyarrow and PyAV (0.3 GB) and room for the tests' largest folder (0.3 GB) beside them.
+LEROBOT_FREE_KB := 700000
 TORCH_CUDA := torch==2.14.1 torchvision==0.29.1
 TORCH_CPU := torch==2.13.0+cpu
 TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
@@ -36,6 +39,9 @@ $(STAMP): pyproject.toml
 		if [ $$kind = cuda ]; then $(PIP) $(TORCH_CUDA); \
 		else $(PIP) $(TORCH_CPU) 2>/dev/null || $(PIP) --extra-index-url $(TORCH_CPU_INDEX) $(TORCH_CPU); fi; }
 	$(PIP) -e '.[dev]'
+	@free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); \
+	if [ $$free -ge $(LEROBOT_FREE_KB) ]; then $(PIP) -e '.[dev,lerobot]'; else echo "warning: $$((free / 1000))" \
+		"MB free: the LeRobot formats (pyarrow, PyAV, 0.3 GB) are not installed and their tests skip"; fi
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -48,7 +54,7 @@ test: $(STAMP)
 
 # The slow tier: whole pipelines on simulated and real recordings, DDP, Ray, every config.
 test-slow: $(STAMP)
-	$(PIP) -e '.[dev,fast,ray]'
+	$(PIP) -e '.[dev,lerobot,fast,ray]'
 	$(BIN)/python -m pytest -q -m slow
 
 lint: $(STAMP)
