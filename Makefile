@@ -41,7 +41,7 @@ $(STAMP): pyproject.toml
 	$(PIP) -e '.[dev]'
 	@free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); \
 	if [ $$free -ge $(LEROBOT_FREE_KB) ]; then $(PIP) -e '.[dev,lerobot]'; else echo "warning: $$((free / 1000))" \
-		"MB free: the LeRobot formats (pyarrow, PyAV, 0.3 GB) are not installed and their tests skip"; fi
+		"MB free: the LeRobot formats (pyarrow, PyAV, 0.3 GB) are not installed: their tests are left out"; fi
 	touch $(STAMP)
 
 setup: $(STAMP)
