@@ -41,7 +41,7 @@ def auto_device(work: str, cuda_available: bool) -> str:
 def resolve_device(name: str | None, work: str = "frames") -> str:
     """'cpu', 'cuda' or 'cuda:N' for a `--device` value (None: cpu) and the kind of work it is for
     (`WORK`; only `auto` depends on it)."""
-    import torch
+    import torch  # here, not at the top: the commands' parsers import this module, `vfdata --help` no torch
 
     name = (name or "cpu").strip().lower()
     if name == "auto":

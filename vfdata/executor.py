@@ -24,7 +24,7 @@ R = TypeVar("R")
 
 def import_ray():
     try:
-        import ray
+        import ray  # the `ray` extra, only for --executor ray
     except ImportError:
         raise VisionForceError("--executor ray needs the ray package: pip install 'visionforce[ray]'") from None
     return ray

@@ -24,7 +24,7 @@ def layout_json(rgbd: bool = False) -> str:
     """The layout as Foxglove imports it (indented JSON); `rgbd`: an RGB-D recording's, whose image
     panel shows the depth camera's image (`/camera/depth/image`) instead of the left view."""
     import_foxglove()
-    import foxglove.layouts as fl
+    import foxglove.layouts as fl  # foxglove-sdk: the `live` extra
 
     view, info, name = ((layout.DEPTH_IMAGE, layout.DEPTH_INFO, "depth image") if rgbd else
                         (layout.LEFT_IMAGE, layout.LEFT_INFO, "left image"))

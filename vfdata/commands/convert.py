@@ -139,6 +139,7 @@ def _convert_lerobot(args: argparse.Namespace, options: ConvertOptions) -> int:
             topics[key] = value
     if bag_only:
         raise InputError(args.src, f"{bag_only[0]} is for ROS bags; a LeRobot dataset's frames are paired already")
+    # pyarrow (the `lerobot` extra) only when a LeRobot dataset is converted
     from vfdata.lerobot.features import choose_features
     from vfdata.lerobot.folder import read_dataset
 

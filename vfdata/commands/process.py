@@ -8,7 +8,7 @@ from pathlib import Path
 from vfdata.commands.engine_flags import add_engine_flags, engine_settings
 from vfdata.commands.outputs import skip_existing
 from vfdata.device import DEVICE_HELP, resolve_device, tracker_device_options
-from vfdata.errors import VisionForceError
+from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import positive_int
 
 # vfdata.processing and the tracker registry (torch, the stages) are imported in `run`, so that
@@ -51,7 +51,7 @@ def _tracker_device(args: argparse.Namespace) -> dict:
 
 def process_job(job: tuple[str, str, object, bool]) -> str:
     """One recording of `--many` (module level: it crosses to a worker process or a Ray task)."""
-    from vfdata.processing import process_recording
+    from vfdata.processing import process_recording  # the engine (OpenCV, torch): not for `vfdata --help`
 
     src, out, options, overwrite = job
     return str(process_recording(src, out, options, overwrite=overwrite))
@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _many(args: argparse.Namespace, options) -> int:
-    from vfdata.errors import InputError
+    # the engine (OpenCV, torch) and the executors: not for `vfdata --help`
     from vfdata.executor import run_jobs
     from vfdata.processing import default_output
 

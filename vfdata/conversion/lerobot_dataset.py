@@ -20,7 +20,14 @@ from vfdata.conversion.options import ConvertOptions
 from vfdata.errors import InputError
 from vfdata.lerobot.features import choose_features
 from vfdata.lerobot.folder import DatasetFolder, read_dataset
-from vfdata.manifest import DERIVED_SUFFIX, RECORDING_META_KEYS, SPLITS, ManifestEntry, write_manifest
+from vfdata.manifest import (
+    DERIVED_SUFFIX,
+    RECORDING_META_KEYS,
+    SPLITS,
+    ManifestEntry,
+    load_manifest,
+    write_manifest,
+)
 from vfdata.recording import Recording
 
 
@@ -121,8 +128,6 @@ def _entry(ds: DatasetFolder, index: int, mcap: Path, folder: Path, src: Path, t
 
 def manifest_note(manifest: Path) -> str | None:
     """What `vfdata experiment` will miss in a manifest written here (None when it has every split)."""
-    from vfdata.manifest import load_manifest
-
     present = {e.split for e in load_manifest(manifest).entries}
     missing = [s for s in SPLITS if s not in present]
     if not missing:

@@ -27,6 +27,7 @@ from vfdata.lerobot.card import dataset_card
 from vfdata.lerobot.episodes import Plan, Source, calibration_of, episode_columns, ordered, plan, split_ranges
 from vfdata.lerobot.folder import require_packages
 from vfdata.lerobot.stats import aggregate, feature_stats, image_sample, image_stats, reduced
+from vfdata.lerobot.video import PIX_FMT
 from vfdata.recording import Recording
 
 VERSIONS = ("v3.0", "v2.1")
@@ -97,8 +98,6 @@ def _derived(paths: list[Path], options: ExportOptions) -> list[tuple[Path | Non
 
 def feature_set(shared: Plan, sources: list[Source], options: ExportOptions) -> dict[str, dict]:
     """info.json `features` of the export (ours, then LeRobot's index columns)."""
-    from vfdata.lerobot.video import PIX_FMT
-
     video = {"dtype": "video", "shape": [shared.height, shared.width, 3], "names": ["height", "width", "channels"],
              "info": {"video.height": shared.height, "video.width": shared.width, "video.codec": options.codec,
                       "video.pix_fmt": PIX_FMT, "video.is_depth_map": False, "video.fps": shared.fps,

@@ -13,6 +13,7 @@ a dataset is data and can neither run code nor make us read files elsewhere."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import string
@@ -99,8 +100,6 @@ class DatasetFolder:
 
 def require_packages() -> None:
     """pyarrow and PyAV, the `lerobot` extra: a one-line error saying how to install them when absent."""
-    import importlib.util
-
     missing = [name for name in ("pyarrow", "av") if importlib.util.find_spec(name) is None]
     if missing:
         raise VisionForceError(f"LeRobot datasets need {' and '.join(missing)}: pip install 'visionforce[lerobot]'")

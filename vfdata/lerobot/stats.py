@@ -5,6 +5,8 @@ RGB in [0, 1]) over a sample of each episode's frames. Pure functions on arrays.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 QUANTILES = {"q01": 0.01, "q10": 0.10, "q50": 0.50, "q90": 0.90, "q99": 0.99}
@@ -80,8 +82,6 @@ class _quiet:
     """numpy's "All-NaN slice" warnings off: a value missing on every frame is expected (NaN stats)."""
 
     def __enter__(self):
-        import warnings
-
         self._catch = warnings.catch_warnings()
         self._catch.__enter__()
         warnings.simplefilter("ignore", RuntimeWarning)

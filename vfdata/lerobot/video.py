@@ -49,7 +49,7 @@ class Mp4Writer:
 
     def __init__(self, path: Path, fps: int, width: int, height: int, codec: str = "av1", crf: int | None = None,
                  gop: int = DEFAULT_GOP):
-        import av
+        import av  # PyAV: the `lerobot` extra, imported where a video is opened
 
         if width % 2 or height % 2:
             raise VideoError(f"{path.name}: {width}x{height} images cannot be stored as {PIX_FMT} video (width and "
@@ -70,7 +70,7 @@ class Mp4Writer:
         self.codec = codec
 
     def write(self, bgr: np.ndarray) -> None:
-        import av
+        import av  # PyAV: the `lerobot` extra, imported where a video is opened
 
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(bgr), format="bgr24")
         frame.pts, frame.time_base = self.frames, Fraction(1, self.fps)
@@ -96,7 +96,7 @@ def read_frames(path: Path, start_s: float, times_s: np.ndarray, what: str) -> I
     """The frames of `path` at `start_s + times_s` (seconds, increasing) as BGR uint8, in order; each
     must be within half a frame period of a decoded frame. `what` names the frames in errors
     ("episode 3")."""
-    import av
+    import av  # PyAV: the `lerobot` extra, imported where a video is opened
 
     if not path.is_file():
         raise InputError(path, "video not found")

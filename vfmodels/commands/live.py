@@ -14,7 +14,9 @@ from pathlib import Path
 from vfdata.commands.engine_flags import add_engine_flags
 from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.errors import InputError
+from vfdata.recording import layout
 from vfdata.threads import set_threads
+from vfmodels.commands.predict import checkpoint_file, model_engine_settings
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -94,8 +96,6 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     # here, not at the top: torch, the models and foxglove; `vfdata --help` starts without them
     from vfdata.engine import EngineOptions
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
-    from vfdata.recording import layout
-    from vfmodels.commands.predict import checkpoint_file, model_engine_settings
     from vfmodels.inference.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
     from vfmodels.inference.live_session import LiveSession
 

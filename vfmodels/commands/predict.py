@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     settings = model_engine_settings(args, args.ckpt, args.tracker_device)
     if args.stream:
         return _stream(args, settings)
+    # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
     from vfdata.processing import ProcessOptions
     from vfmodels.inference.predict import predict_recording
 

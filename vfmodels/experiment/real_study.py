@@ -97,6 +97,7 @@ def stretch_responses(depths: np.ndarray, masks: np.ndarray, force: np.ndarray,
                       splits: dict[str, tuple[int, int]], out: Path) -> dict:
     """Training against test stretch: the response maps (force_maps), how far they agree over the
     organ, how the components couple in each; the figure `force_maps.png`."""
+    # matplotlib only for the figure, on the file-only backend that vfmodels.reports.figures sets
     import matplotlib.pyplot as plt
 
     from vfmodels.reports.figures import save_figure
@@ -136,9 +137,7 @@ def _table(results: dict[str, dict[str, float]]) -> str:
 
 
 def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict | None = None) -> dict:
-    import matplotlib
-
-    matplotlib.use("Agg")
+    # figures puts matplotlib on its file-only backend before pyplot loads
     from vfmodels.reports.figures import plot_tracked_points, save_figure
 
     manifest = load_manifest(manifest_path)
@@ -178,7 +177,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
     for name, pred in temporal_pred.items():
         in_range[name] = per_component_metrics(pred[inside[test]], force[test][inside[test]])
 
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # on the file-only backend that run_study's import of figures set
 
     fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
     seconds = (rec.frame_times_ns - rec.frame_times_ns[0]) / 1e9

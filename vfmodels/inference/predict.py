@@ -48,6 +48,7 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
+from vfdata.tracking.registry import TRACKERS
 from vfmodels.evaluation.band import band_metrics, describe, unfamiliar, unlikeness
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
@@ -80,8 +81,6 @@ def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegres
 def trained_tracker(ckpt: str | Path) -> str | None:
     """The tracker whose tracks a checkpoint's model was trained on (saved by `ForceDataModule`), or
     None when the checkpoint does not say (older checkpoints, other inputs)."""
-    from vfdata.tracking.registry import TRACKERS
-
     state = read_checkpoint(ckpt).get("ForceDataModule") or {}
     tracker = state.get("tracker") if isinstance(state, dict) else None
     if tracker is not None and tracker not in TRACKERS:
