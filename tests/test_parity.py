@@ -139,8 +139,9 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
     offline_times, offline = read_force_estimate(predicted[0])
     root = root / ckpt.stem  # this model's outputs
     cv2.setRNGSeed(0)
-    assert main(["predict", str(root.parent / "mini_002.mcap"), "--ckpt", str(ckpt), "--out", str(root / "stream"),
-                 "--stream", "--quiet"]) == 0
+    with contextlib.redirect_stdout(io.StringIO()) as streamed:
+        assert main(["predict", str(root.parent / "mini_002.mcap"), "--ckpt", str(ckpt), "--out",
+                     str(root / "stream"), "--stream", "--quiet"]) == 0
     paths = {"vfdata predict --stream": read_force_estimate(root / "stream" / "mini_002.force.mcap")}
     if _has_foxglove():
         from vfmodels.commands import live
@@ -172,8 +173,16 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
     _, offline_unlike = read_force_unlike(predicted[0])
     # the untrained model's embeddings are saturated: each frame lies sqrt(32) from the reference's zero mean
     np.testing.assert_allclose(offline_unlike, np.sqrt(32) / LIMIT, rtol=1e-5)
-    with Recording.open(predicted[0]) as rec:
-        assert rec.metadata_records["visionforce.derived"]["frames_unlike_training"] == str(FRAMES)
+    # both say so, in their metadata and in the same warnings
+    marked = {}
+    for name, path in (("offline", predicted[0]), ("stream", root / "stream" / "mini_002.force.mcap")):
+        with Recording.open(path) as rec:
+            meta = rec.metadata_records["visionforce.derived"]
+            marked[name] = (meta["frames_beyond_training"], meta["frames_unlike_training"])
+    assert marked["offline"] == marked["stream"] and marked["offline"][1] == str(FRAMES)
+    for out in (predicted[1], streamed.getvalue()):
+        assert f"warning: {FRAMES} of {FRAMES} frames look unlike any training frame" in out
+        assert f"warning: {marked['offline'][0]} of {FRAMES} frames have a force beyond the training range" in out
     for name, path in files.items():
         times, band, beyond = read_force_band(path)
         np.testing.assert_array_equal(times, offline_times, err_msg=name)

@@ -99,13 +99,7 @@ def run(args: argparse.Namespace) -> int:
         print("band against the force sensor: coverage " + ", ".join(
             f"{c} {b['coverage_' + c.lower()]:.0%} (+-{b['half_width_' + c.lower()]:.2f} N)"
             for c in ("Fx", "Fy", "Fz")))
-    if result.frames_beyond:
-        print(f"warning: {result.frames_beyond} of {result.frames} frames have a force beyond the training range "
-              f"(marked on /force/estimate/beyond and in the plot): no band speaks for them")
-    if result.frames_unfamiliar:
-        print(f"warning: {result.frames_unfamiliar} of {result.frames} frames look unlike any training frame "
-              f"(the model's input, farther from training than 99% of validation's; marked in the plot): their band "
-              f"is widened, and such frames erred twice as much on unseen views")
+    say_marks(result.frames_beyond, result.frames_unfamiliar, result.frames)
     stages = {**result.stage_fps, "force": result.force_fps}
     print("frames/s per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in stages.items()))
     for path in (result.force_mcap, result.plot, result.video):
@@ -134,5 +128,17 @@ def _stream(args: argparse.Namespace, settings: dict) -> int:
     print("ms/frame per stage, CPU of its thread (= wall on an idle core): "
           + ", ".join(f"{k} {v:.1f}" for k, v in result.stage_cpu_ms.items())
           + f"; sum {sum(result.stage_cpu_ms.values()):.1f} (includes the first frame's set-up)")
+    say_marks(result.frames_beyond, result.frames_unfamiliar, result.estimates)
     print(f"wrote {result.force_mcap}")
     return 0
+
+
+def say_marks(beyond: int, unfamiliar: int, frames: int) -> None:
+    """The warnings on estimates the band cannot speak for, offline and streamed alike."""
+    if beyond:
+        print(f"warning: {beyond} of {frames} frames have a force beyond the training range "
+              f"(marked on /force/estimate/beyond and in the plot): no band speaks for them")
+    if unfamiliar:
+        print(f"warning: {unfamiliar} of {frames} frames look unlike any training frame (the model's input, farther "
+              f"from training than 99% of validation's; marked on /force/estimate/unlike and in the plot): their "
+              f"band is widened, and such frames erred twice as much on unseen views")

@@ -34,6 +34,8 @@ class StreamResult:
     latency_ms: np.ndarray  # per pushed frame after the first two (which also fix the object frame)
     stage_ms: dict[str, float] = field(default_factory=dict)  # wall, per frame
     stage_cpu_ms: dict[str, float] = field(default_factory=dict)  # CPU time of the stage's thread, per frame
+    frames_beyond: int = 0  # estimates beyond the training range (as `PredictResult.frames_beyond`)
+    frames_unfamiliar: int = 0  # estimates whose input is unlike training's
 
 
 def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: EngineOptions, *,
@@ -70,11 +72,14 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
         source.close()
     calibration = estimator.regressor.band_calibration
     confidence = estimator.confidence
+    beyond = sum(bool(np.any(e.beyond_n != 0)) for e in estimates)
+    unfamiliar = sum(e.unfamiliar for e in estimates)
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
                          object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
                                         "object_frame_kind": object_frame.kind, "camera_frame_id": camera_frame,
                                         "band": json.dumps(None if calibration is None else calibration.to_dict()),
-                                        "frames_unlike_training": str(sum(e.unfamiliar for e in estimates)),
+                                        "frames_beyond_training": str(beyond),
+                                        "frames_unlike_training": str(unfamiliar),
                                         **confidence.metadata()},
                          overwrite=overwrite, camera_frame_id=camera_frame,
                          band_n=np.stack([e.band_n for e in estimates]),
@@ -82,4 +87,4 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                          unlike=np.array([e.unlike for e in estimates]))
     return StreamResult(path, n, len(estimates), confidence, np.array(latencies[2:]) * 1000.0,
                         {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()},
-                        {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()})
+                        {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}, beyond, unfamiliar)
