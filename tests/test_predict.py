@@ -455,9 +455,17 @@ def test_force_mcap_round_trip(tmp_path):
         info = rec.topics[layout.FORCE_UNLIKE]
         assert info.msgtype == "std_msgs/msg/Float64" and info.count == len(times)
         payload = next(rec.payloads(layout.FORCE_UNLIKE))[1]
-    # ROS 2's own definition reads the same number (rosbags' typestore)
+    # ROS 2's own definition reads the same number (rosbags' typestore), and so does the mcap package's
+    # ROS 2 decoder from the schema the file carries
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
     from rosbags.typesys import Stores, get_typestore
     assert get_typestore(Stores.ROS2_HUMBLE).deserialize_cdr(bytes(payload), "std_msgs/msg/Float64").data == unlike[0]
+    with open(path, "rb") as f:
+        decoded = [(m.log_time, d.data) for _, _, m, d in make_reader(f, decoder_factories=[DecoderFactory()])
+                   .iter_decoded_messages(topics=[layout.FORCE_UNLIKE])]
+    np.testing.assert_array_equal([t for t, _ in decoded], times)
+    np.testing.assert_array_equal([v for _, v in decoded], unlike)
 
 
 @pytest.mark.slow
