@@ -165,8 +165,9 @@ def unfamiliar_metrics(pred_n: np.ndarray, true_n: np.ndarray, distance: np.ndar
 
 def unfamiliar(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:
     """Frames (the shape of `distance`) whose embedding lies farther from training's than all but
-    `UNFAMILIAR_SHARE` of validation's (False where unknown, or without a limit)."""
-    return _beyond(distance, None if calibration is None else calibration.distance_limit)
+    `UNFAMILIAR_SHARE` of validation's (False where unknown, or without a limit): `unlikeness` above 1."""
+    with np.errstate(invalid="ignore"):
+        return unlikeness(distance, calibration) > 1.0
 
 
 def unlikeness(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:

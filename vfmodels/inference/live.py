@@ -32,7 +32,7 @@ from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfdata.rig import Rig
-from vfmodels.evaluation.band import unfamiliar, unlikeness
+from vfmodels.evaluation.band import unlikeness
 from vfmodels.inference.predict import history, load_force_model, model_device
 from vfmodels.training.regressor import ForceRegressor
 
@@ -53,8 +53,12 @@ class ForceEstimate:
     beyond_n: np.ndarray  # (3,) N, how far each component lies beyond the training range (0 inside)
     # Why the stream is doubtful so far (keys of vfdata.confidence.REASONS; empty: not doubtful).
     doubtful: tuple[str, ...] = ()
-    unfamiliar: bool = False  # the frame's input is unlike training's (vfmodels.evaluation.band.unfamiliar)
-    unlike: float = float("nan")  # its embedding distance over the limit (> 1: unfamiliar; NaN: unknown)
+    unlike: float = float("nan")  # the input's embedding distance over its limit (band.unlikeness; NaN: unknown)
+
+    @property
+    def unfamiliar(self) -> bool:
+        """The frame's input is unlike training's (`vfmodels.evaluation.band.unfamiliar`)."""
+        return bool(self.unlike > 1.0)
 
 
 def skipped_frame_rate(fps: float, stamps_ns: np.ndarray) -> float:
@@ -226,10 +230,8 @@ class StreamingForceEstimator:
     def _estimate(self, result: tuple[int, np.ndarray, np.ndarray, float], t0: float) -> ForceEstimate:
         stamp, force, band, distance = result
         reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
-        calibration = self.regressor.band_calibration
         return ForceEstimate(stamp, force, time.perf_counter() - t0, band, self.regressor.beyond_range(force),
-                             reasons, bool(unfamiliar(np.asarray(distance), calibration)),
-                             float(unlikeness(np.asarray(distance), calibration)))
+                             reasons, float(unlikeness(np.asarray(distance), self.regressor.band_calibration)))
 
     @property
     def confidence(self) -> Confidence | None:
