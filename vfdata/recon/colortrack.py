@@ -197,7 +197,9 @@ class ColorTrackSegmenter(Segmenter):
             seed = next((usable & where for where in (points, middle, np.ones_like(usable))
                          if (usable & where).sum() >= 20), inside > 0)
             # The tissue's depth follows a ramp across the box where it runs into depth (vfdata.recon.depth_ramp).
-            gate = ramp_gate(inside, usable, seed, self.settings.ramp_gate_mm)
+            # An instrument across the tube splits its visible surface in two: the metal bridges them.
+            bridge = metal[by : by + bh, bx : bx + bw] if self.settings.grey_penalty > 0 else None
+            gate = ramp_gate(inside, usable, seed, self.settings.ramp_gate_mm, bridge)
             region = gc[by : by + bh, bx : bx + bw]
             region[(inside > 0) & ~gate & (region == cv2.GC_PR_FGD)] = cv2.GC_PR_BGD
         bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)

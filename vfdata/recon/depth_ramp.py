@@ -19,11 +19,14 @@ ROUNDS = 6  # the window grows from the seed's neighbourhood to the whole box in
 TRIM = 0.1  # the fit drops this share of its worst residuals (the tube's rims, stray matches)
 
 
-def ramp_gate(depth_mm: np.ndarray, usable: np.ndarray, seed: np.ndarray, tolerance_mm: float) -> np.ndarray:
+def ramp_gate(depth_mm: np.ndarray, usable: np.ndarray, seed: np.ndarray, tolerance_mm: float,
+              bridge: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool: the pixels of a box whose depth lies within `tolerance_mm` of the tissue's ramp and
     that connect to `seed` through such pixels. `depth_mm` (H, W), <= 0 where unknown; `usable` (H, W)
     the pixels that may be tissue (known depth, not metal); `seed` (H, W) pixels known to be on the
-    tissue (the box's middle or the prompt's points), whose median depth starts the ramp."""
+    tissue (the box's middle or the prompt's points), whose median depth starts the ramp. `bridge` (H, W):
+    pixels the tissue may pass behind (an instrument lying across it), through which the tissue on either
+    side stays connected; they are never accepted themselves."""
     depth = np.asarray(depth_mm, dtype=np.float64)
     usable = usable & (depth > 0)
     start = seed & usable
@@ -46,7 +49,7 @@ def ramp_gate(depth_mm: np.ndarray, usable: np.ndarray, seed: np.ndarray, tolera
         reach = k / ROUNDS
         window = (np.abs(v - centre[0]) <= reach) & (np.abs(u - centre[1]) <= reach)
         near = usable & window & (np.abs(depth - predicted) <= tolerance_mm)
-        grown = _connected_to(near, start)
+        grown = _connected_to(near, start, bridge)
         if (grown == accepted).all() and reach >= 1:
             break
         accepted = grown
@@ -75,11 +78,12 @@ def _fit_inverse_ramp(s: np.ndarray, depth: np.ndarray) -> np.ndarray | None:
     return coef
 
 
-def _connected_to(region: np.ndarray, seed: np.ndarray) -> np.ndarray:
-    """The components of `region` (8-connected) that touch `seed`."""
-    n, labels = cv2.connectedComponents(region.astype(np.uint8), connectivity=8)
+def _connected_to(region: np.ndarray, seed: np.ndarray, bridge: np.ndarray | None = None) -> np.ndarray:
+    """The pixels of `region` whose components (8-connected, through `bridge` pixels too) touch `seed`."""
+    linked = region if bridge is None else region | bridge
+    n, labels = cv2.connectedComponents(linked.astype(np.uint8), connectivity=8)
     if n <= 1:
         return region & seed
     touched = np.unique(labels[seed & region])
     touched = touched[touched > 0]
-    return np.isin(labels, touched)
+    return np.isin(labels, touched) & region
