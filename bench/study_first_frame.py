@@ -31,6 +31,11 @@ def true_mask(raw: Path, i: int) -> np.ndarray:
     return cv2.imread(str(raw / "ground_truth" / "mask" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE) > 127
 
 
+def _taper_strength(diagnostics: dict) -> float:
+    """The taper cue's strength in the end decision (>= 3 decides alone; vfdata.recon.clamped_end)."""
+    return diagnostics.get("end", {}).get("cues", {}).get("taper", {}).get("strength", float("nan"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("manifest", type=Path)
@@ -58,7 +63,9 @@ def main() -> None:
         rows.append((e.id, e.orientation_deg, e.split, iou, z_err, origin, 90 - into_depth, d))
         print(f"{e.id} {e.orientation_deg:5.0f} {e.split:>5}  IoU {iou:.3f}  Z {z_err:6.1f} deg  origin {origin:6.1f}"
               f"  into depth {90 - into_depth:5.1f} deg  slope {d.get('size_slope', float('nan')):+.3f}"
-              f"  check {d.get('axis_check_deg', float('nan')):5.1f} {d.get('axis_from', '')}", flush=True)
+              f"  check {d.get('axis_check_deg', float('nan')):5.1f} {d.get('axis_from', '')}"
+              f"  doubts {','.join(d.get('doubtful', [])) or '-'}"
+              f"  taper {_taper_strength(d):.2f}", flush=True)
         if args.save_masks:
             args.save_masks.mkdir(parents=True, exist_ok=True)
             pic = first.left.copy()
