@@ -58,6 +58,7 @@ def test_outliers_and_the_background_are_removed():
     assert points[:, 2].max() < 200.0  # nothing from the far plane outside the mask
 
 
+@pytest.mark.slow  # open3d comes with `make test-slow` (the extra `fast`), not with the default set-up
 def test_numpy_and_open3d_agree():
     pytest.importorskip("open3d", exc_type=ImportError)
     depth, mask = _cylinder_depth()
