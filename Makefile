@@ -20,6 +20,7 @@ TORCH_CUDA := torch==2.14.1 torchvision==0.29.1
 TORCH_CPU := torch==2.13.0+cpu
 TORCH_CPU_INDEX := https://download.pytorch.org/whl/cpu
 VENV_DIR = $(dir $(abspath $(VENV)))
+FREE_KB = df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'
 PIP := $(BIN)/pip install -q --no-cache-dir
 
 $(STAMP): pyproject.toml
@@ -30,7 +31,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q --upgrade pip
 	@# Skipped once torch imports, so that a set-up that ran out of disk inside pip is checked again.
 	@$(BIN)/python -c 'import torch' 2>/dev/null || { \
-		free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); kind=$(TORCH); \
+		free=$$($(FREE_KB)); kind=$(TORCH); \
 		if [ $$kind = auto ]; then kind=cpu; [ $$free -ge $(CUDA_FREE_KB) ] && kind=cuda; fi; \
 		need=$(CPU_FREE_KB); [ $$kind = cuda ] && need=$(CUDA_FREE_KB); \
 		if [ $$free -lt $$need ]; then echo "warning: $(VENV_DIR): the set-up with PyTorch's $$kind build" \
@@ -39,7 +40,7 @@ $(STAMP): pyproject.toml
 		if [ $$kind = cuda ]; then $(PIP) $(TORCH_CUDA); \
 		else $(PIP) $(TORCH_CPU) 2>/dev/null || $(PIP) --extra-index-url $(TORCH_CPU_INDEX) $(TORCH_CPU); fi; }
 	$(PIP) -e '.[dev]'
-	@free=$$(df -Pk $(VENV_DIR) | awk 'NR==2 {print $$4}'); \
+	@free=$$($(FREE_KB)); \
 	if [ $$free -ge $(LEROBOT_FREE_KB) ]; then $(PIP) -e '.[dev,lerobot]'; else echo "warning: $$((free / 1000))" \
 		"MB free: the LeRobot formats (pyarrow, PyAV, 0.3 GB) are not installed: their tests are left out"; fi
 	touch $(STAMP)

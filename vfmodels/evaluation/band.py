@@ -166,22 +166,24 @@ def unfamiliar_metrics(pred_n: np.ndarray, true_n: np.ndarray, distance: np.ndar
 def unfamiliar(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:
     """Frames (the shape of `distance`) whose embedding lies farther from training's than all but
     `UNFAMILIAR_SHARE` of validation's (False where unknown, or without a limit): `unlikeness` above 1."""
-    with np.errstate(invalid="ignore"):
-        return unlikeness(distance, calibration) > 1.0
+    return _beyond(distance, None if calibration is None else calibration.distance_limit)
 
 
 def unlikeness(distance: np.ndarray, calibration: BandCalibration | None) -> np.ndarray:
     """How unlike training's each frame's input is: its embedding distance over `distance_limit` (> 1:
     `unfamiliar`), NaN where the distance is unknown or there is no limit (`/force/estimate/unlike`)."""
-    limit = None if calibration is None else calibration.distance_limit
+    return _over_limit(distance, None if calibration is None else calibration.distance_limit)
+
+
+def _over_limit(distance: np.ndarray, limit: float | None) -> np.ndarray:
     distance = np.asarray(distance, dtype=np.float64)
     return distance / limit if limit else np.full(distance.shape, np.nan)
 
 
 def _beyond(distance: np.ndarray, limit: float | None) -> np.ndarray:
-    """distance > limit, False where the distance is unknown (NaN) or there is no limit."""
+    """distance over limit above 1, False where the distance is unknown (NaN) or there is no limit."""
     with np.errstate(invalid="ignore"):
-        return np.asarray(distance, dtype=np.float64) > (math.inf if limit is None else limit)
+        return _over_limit(distance, limit) > 1.0
 
 
 def calibrate(pred_n: np.ndarray, true_n: np.ndarray, spread_n: np.ndarray, coverage: float = COVERAGE,

@@ -56,6 +56,11 @@ class ForceEstimate:
     unlike: float = float("nan")  # the input's embedding distance over its limit (band.unlikeness; NaN: unknown)
 
     @property
+    def beyond_training(self) -> bool:
+        """Some component lies beyond the training range (`/force/estimate/beyond` nonzero)."""
+        return bool(np.any(self.beyond_n != 0))
+
+    @property
     def unfamiliar(self) -> bool:
         """The frame's input is unlike training's (`vfmodels.evaluation.band.unfamiliar`)."""
         return bool(self.unlike > 1.0)

@@ -123,7 +123,7 @@ class LiveSession:
             self.stats.estimates += 1
             self.stats.forces.append((stamp, force))
             self.stats.bands.append(np.asarray(estimate.band_n, dtype=np.float64))
-            self.stats.beyond += int(np.any(estimate.beyond_n != 0))
+            self.stats.beyond += int(estimate.beyond_training)
             self.stats.unfamiliar += int(estimate.unfamiliar)
             if estimate.doubtful and self.doubtful_since_ns is None:
                 self.doubtful_since_ns = stamp

@@ -72,7 +72,7 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
         source.close()
     calibration = estimator.regressor.band_calibration
     confidence = estimator.confidence
-    beyond = sum(bool(np.any(e.beyond_n != 0)) for e in estimates)
+    beyond = sum(e.beyond_training for e in estimates)
     unfamiliar = sum(e.unfamiliar for e in estimates)
     write_force_estimate(path, np.array([e.stamp_ns for e in estimates]), np.stack([e.force_n for e in estimates]),
                          object_frame, {"stage": "predict --stream", "window": str(estimator.window), "x_axis": x_axis,
