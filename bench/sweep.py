@@ -80,8 +80,8 @@ def dataset(out: Path, preset: str, seed: int, args: argparse.Namespace) -> tupl
         synth += ["--frames", str(args.frames)]
     started = time.perf_counter()
     run(synth, log)
-    experiment = [vfdata, "experiment", str(data / f"{preset}.manifest.yaml"), "--out", str(results), "--seeds", "1",
-                  "--workers", str(args.workers), "--quiet", "--variants", *args.variants]
+    experiment = [vfdata, "experiment", str(data / f"{preset}.manifest.yaml"), "--out", str(results),
+                  "--seeds", str(args.seeds), "--workers", str(args.workers), "--quiet", "--variants", *args.variants]
     if args.epochs:
         experiment += ["--epochs", str(args.epochs)]
     run(experiment, log)
@@ -130,6 +130,8 @@ def main() -> None:
     parser.add_argument("--colon-seeds", type=seeds, default=[])
     parser.add_argument("--glove-seeds", type=seeds, default=[])
     parser.add_argument("--variants", nargs="+", default=["visionforce", "ridge"])
+    parser.add_argument("--seeds", type=int, default=1,
+                        help="training seeds per variant (the tables read seed 0; more feed the ensemble band study)")
     parser.add_argument("--epochs", type=int, help="training epochs (default: the configs')")
     parser.add_argument("--frames", type=int, help="frames per recording (default: the presets')")
     parser.add_argument("--workers", type=int, default=2)
