@@ -78,6 +78,8 @@ def dataset(out: Path, preset: str, seed: int, args: argparse.Namespace) -> tupl
              "--test-orientations", ",".join(map(str, views)), str(data)]
     if args.frames:
         synth += ["--frames", str(args.frames)]
+    if args.train_recordings:
+        synth += ["--train-recordings", str(args.train_recordings)]
     started = time.perf_counter()
     run(synth, log)
     experiment = [vfdata, "experiment", str(data / f"{preset}.manifest.yaml"), "--out", str(results),
@@ -134,6 +136,8 @@ def main() -> None:
                         help="training seeds per variant (the tables read seed 0; more feed the ensemble band study)")
     parser.add_argument("--epochs", type=int, help="training epochs (default: the configs')")
     parser.add_argument("--frames", type=int, help="frames per recording (default: the presets')")
+    parser.add_argument("--train-recordings", type=int,
+                        help="training recordings (tissues) per dataset (default: the presets': colon 5, glove 12)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report-only", action="store_true", help="the tables and targets of OUT/sweep.json only")
     parser.add_argument("--recheck-axis", action="store_true",

@@ -236,3 +236,42 @@ def test_cli_test_orientations_reach_the_manifest_and_the_metadata(tmp_path, cap
     with pytest.raises(SystemExit):
         main(["synth", "--preset", "mini", str(out), "--test-orientations", "ninety"])
     assert "not a comma-separated list of degrees" in capsys.readouterr().err
+
+
+def test_train_recordings_add_or_drop_tissues_and_keep_the_rest():
+    from vfdata.errors import VisionForceError
+    from vfdata.sim.presets import get_preset, with_train_recordings
+
+    colon = PRESETS["colon"]
+    more = with_train_recordings(colon, 8)
+    trains = [(r.id, r.index, r.orientation_deg, r.frames) for r in more.recordings if r.split == "train"]
+    # The preset's five, then three new ones after every other recording, each its own index (its draws).
+    assert trains == [(f"colon_{k:03d}", k, 0.0, 742) for k in range(5)] + \
+        [(f"colon_{k:03d}", k, 0.0, 742) for k in (8, 9, 10)]
+    # Validation and test recordings are the very same plans.
+    assert [r for r in more.recordings if r.split != "train"] == [r for r in colon.recordings if r.split != "train"]
+    fewer = with_train_recordings(colon, 2)
+    assert [r.id for r in fewer.recordings] == ["colon_000", "colon_001", "colon_005", "colon_006", "colon_007"]
+    assert with_train_recordings(colon, 5) == colon
+    # With test orientations that add test recordings, new tissues come after those.
+    both = get_preset("colon", [60, 135, 270], 6)
+    assert [r.id for r in both.recordings][-2:] == ["colon_008", "colon_009"]
+    assert both.recordings[-1].split == "train"
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(VisionForceError, match="number of recordings"):
+            with_train_recordings(colon, bad)
+
+
+def test_cli_train_recordings_reach_the_manifest_and_the_metadata(tmp_path, capsys):
+    out = tmp_path / "more"
+    assert main(["synth", "--preset", "mini", str(out), "--frames", "1", "--train-recordings", "2"]) == 0
+    manifest = yaml.safe_load((out / "mini.manifest.yaml").read_text())
+    assert [(r["id"], r["split"]) for r in manifest["recordings"]] == [
+        ("mini_000", "train"), ("mini_001", "val"), ("mini_002", "test"), ("mini_003", "train")]
+    meta = yaml.safe_load((out / "mini_003" / "meta.yaml").read_text())
+    assert meta["split"] == "train" and "--train-recordings 2" in meta["source"]
+    params = {k: json.loads((out / f"mini_00{k}/ground_truth/params.json").read_text()) for k in (0, 3)}
+    assert params[3]["material"] != params[0]["material"]  # another tissue, not a copy
+    with pytest.raises(SystemExit):
+        main(["synth", "--preset", "mini", str(out), "--train-recordings", "0"])
+    assert "not a number of recordings >= 1" in capsys.readouterr().err

@@ -30,6 +30,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--test-orientations", type=_orientations, default=None, metavar="DEG[,DEG...]",
                    help="turn the preset's test recordings to these orientations (degrees about the vertical), "
                    "spread over them as evenly as possible, e.g. 90,180 or 60 (default: the preset's)")
+    p.add_argument("--train-recordings", type=_count, default=None, metavar="N",
+                   help="N training recordings, each its own tissue: the preset's first N, or all of them and new "
+                   "ones after the others; validation and test recordings stay the same (default: the preset's; "
+                   "colon 5, glove 12)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing recordings made with other settings")
     p.set_defaults(func=run)
@@ -46,12 +50,20 @@ def _orientations(text: str) -> tuple[float, ...]:
     return angles
 
 
+def _count(text: str) -> int:
+    """'10' -> 10; anything but a whole number >= 1 is a usage error naming the option."""
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a number of recordings >= 1")
+    return int(text)
+
+
 def run(args: argparse.Namespace) -> int:
     # Here, not at the top: it loads the renderer's compiled kernels, which no other command needs.
     from vfdata.sim import synthesize
 
     path = synthesize(args.preset, args.out_dir, seed=args.seed, workers=args.workers,
                       progress=sys.stderr.isatty(), frames=args.frames, overwrite=args.overwrite,
-                      image_format=args.image_format, test_orientations=args.test_orientations)
+                      image_format=args.image_format, test_orientations=args.test_orientations,
+                      train_recordings=args.train_recordings)
     print(path)
     return 0

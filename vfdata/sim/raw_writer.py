@@ -87,10 +87,11 @@ def check_image_format(image_format: str) -> tuple[str, list[int]]:
 
 
 def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progress_counter=None,
-                    image_format: str = "jpeg", test_orientations: Sequence[float] | None = None) -> None:
+                    image_format: str = "jpeg", test_orientations: Sequence[float] | None = None,
+                    train_recordings: int | None = None) -> None:
     """Simulate and render `rec` into the (new, empty) raw recording folder `folder`, the stereo views
-    as `image_format` ('jpeg' or 'png'); `test_orientations`, if the preset's were replaced, are
-    named in the metadata's `source`."""
+    as `image_format` ('jpeg' or 'png'); `test_orientations` and `train_recordings`, if the preset's were
+    replaced, are named in the metadata's `source`."""
     suffix, image_params = check_image_format(image_format)
     spec = rec.spec
     cam = spec.cam.camera
@@ -170,7 +171,7 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
         "split": rec.plan.split,
         "prompt_box": first_box,
         "synthetic": True,
-        "source": f"vfdata synth --preset {preset} --seed {seed}{_orientations_option(test_orientations)} "
+        "source": f"vfdata synth --preset {preset} --seed {seed}{_layout_options(test_orientations, train_recordings)} "
                   f"({rec.plan.id})",
     }
     (folder / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
@@ -237,7 +238,8 @@ def number(x: float) -> int | float:
     return int(x) if float(x).is_integer() else float(x)
 
 
-def _orientations_option(test_orientations: Sequence[float] | None) -> str:
-    if test_orientations is None:
-        return ""
-    return " --test-orientations " + ",".join(str(number(a)) for a in test_orientations)
+def _layout_options(test_orientations: Sequence[float] | None, train_recordings: int | None) -> str:
+    """The `vfdata synth` options that changed the preset's recordings, as typed."""
+    orientations = "" if test_orientations is None else \
+        " --test-orientations " + ",".join(str(number(a)) for a in test_orientations)
+    return orientations + ("" if train_recordings is None else f" --train-recordings {train_recordings}")
