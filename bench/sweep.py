@@ -16,6 +16,11 @@ that came after the sweep ran (the frame itself, and so the forces, are unchange
 
     python bench/sweep.py --out /data/sweep --colon-seeds 101-108 --glove-seeds 201-204
     python bench/sweep.py --out /tmp/s --colon-seeds 5 --frames 120 --epochs 2     # a quick look
+    python bench/sweep.py --out /data/sweep10 --colon-seeds 101-102 --train-recordings 10  # more tissues
+
+`--train-recordings N` makes each dataset with N training tissues (`vfdata synth --train-recordings`: the
+same validation and test recordings); `--seeds N` trains N seeds per variant (the tables read seed 0;
+`bench/study_ensemble_band.py` reads them all).
 
 Seeds: the project tuned on colon and glove seeds 0 and 7, and developed issue 32 on colon 11-13 and glove
 21-22; the sweep's seeds should be none of these.
