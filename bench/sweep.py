@@ -83,8 +83,9 @@ def dataset(out: Path, preset: str, seed: int, args: argparse.Namespace) -> tupl
              "--test-orientations", ",".join(map(str, views)), str(data)]
     if args.frames:
         synth += ["--frames", str(args.frames)]
-    if args.train_recordings:
-        synth += ["--train-recordings", str(args.train_recordings)]
+    for split in ("train", "val"):
+        if getattr(args, f"{split}_recordings"):
+            synth += [f"--{split}-recordings", str(getattr(args, f"{split}_recordings"))]
     started = time.perf_counter()
     run(synth, log)
     experiment = [vfdata, "experiment", str(data / f"{preset}.manifest.yaml"), "--out", str(results),
@@ -143,6 +144,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, help="frames per recording (default: the presets')")
     parser.add_argument("--train-recordings", type=int,
                         help="training recordings (tissues) per dataset (default: the presets': colon 5, glove 12)")
+    parser.add_argument("--val-recordings", type=int,
+                        help="validation recordings (tissues) per dataset (default: the presets': colon 1, glove 4)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--report-only", action="store_true", help="the tables and targets of OUT/sweep.json only")
     parser.add_argument("--recheck-axis", action="store_true",

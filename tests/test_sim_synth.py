@@ -254,22 +254,28 @@ def test_train_recordings_add_or_drop_tissues_and_keep_the_rest():
     assert [r.id for r in fewer.recordings] == ["colon_000", "colon_001", "colon_005", "colon_006", "colon_007"]
     assert with_train_recordings(colon, 5) == colon
     # With test orientations that add test recordings, new tissues come after those.
-    both = get_preset("colon", [60, 135, 270], 6)
+    both = get_preset("colon", [60, 135, 270], {"train": 6})
     assert [r.id for r in both.recordings][-2:] == ["colon_008", "colon_009"]
     assert both.recordings[-1].split == "train"
     for bad in (0, -1, 2.5, True):
         with pytest.raises(VisionForceError, match="number of recordings"):
             with_train_recordings(colon, bad)
+    # Validation tissues likewise, after the new training ones.
+    three = get_preset("colon", None, {"train": 6, "val": 3})
+    assert [(r.id, r.split) for r in three.recordings][-3:] == [
+        ("colon_008", "train"), ("colon_009", "val"), ("colon_010", "val")]
+    assert [r for r in three.recordings if r.split == "test"] == [r for r in colon.recordings if r.split == "test"]
 
 
 def test_cli_train_recordings_reach_the_manifest_and_the_metadata(tmp_path, capsys):
     out = tmp_path / "more"
-    assert main(["synth", "--preset", "mini", str(out), "--frames", "1", "--train-recordings", "2"]) == 0
+    assert main(["synth", "--preset", "mini", str(out), "--frames", "1", "--train-recordings", "2",
+                 "--val-recordings", "2"]) == 0
     manifest = yaml.safe_load((out / "mini.manifest.yaml").read_text())
     assert [(r["id"], r["split"]) for r in manifest["recordings"]] == [
-        ("mini_000", "train"), ("mini_001", "val"), ("mini_002", "test"), ("mini_003", "train")]
+        ("mini_000", "train"), ("mini_001", "val"), ("mini_002", "test"), ("mini_003", "train"), ("mini_004", "val")]
     meta = yaml.safe_load((out / "mini_003" / "meta.yaml").read_text())
-    assert meta["split"] == "train" and "--train-recordings 2" in meta["source"]
+    assert meta["split"] == "train" and "--train-recordings 2 --val-recordings 2" in meta["source"]
     params = {k: json.loads((out / f"mini_00{k}/ground_truth/params.json").read_text()) for k in (0, 3)}
     assert params[3]["material"] != params[0]["material"]  # another tissue, not a copy
     with pytest.raises(SystemExit):

@@ -34,6 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="N training recordings, each its own tissue: the preset's first N, or all of them and new "
                    "ones after the others; validation and test recordings stay the same (default: the preset's; "
                    "colon 5, glove 12)")
+    p.add_argument("--val-recordings", type=_count, default=None, metavar="N",
+                   help="N validation recordings, each its own tissue, likewise (default: the preset's; colon 1, "
+                   "glove 4): the band is calibrated on them")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing recordings made with other settings")
     p.set_defaults(func=run)
@@ -64,6 +67,6 @@ def run(args: argparse.Namespace) -> int:
     path = synthesize(args.preset, args.out_dir, seed=args.seed, workers=args.workers,
                       progress=sys.stderr.isatty(), frames=args.frames, overwrite=args.overwrite,
                       image_format=args.image_format, test_orientations=args.test_orientations,
-                      train_recordings=args.train_recordings)
+                      split_recordings={"train": args.train_recordings, "val": args.val_recordings})
     print(path)
     return 0

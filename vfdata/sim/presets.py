@@ -9,7 +9,7 @@ frames, 7:1.5:1.5); `mini` is a few hundred frames per recording for tests and t
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 from vfdata.errors import VisionForceError
@@ -150,16 +150,19 @@ PRESETS: dict[str, Preset] = {
 
 
 def get_preset(name: str, test_orientations: Sequence[float] | None = None,
-               train_recordings: int | None = None) -> Preset:
+               split_recordings: Mapping[str, int] | None = None) -> Preset:
     """The preset `name`, with its test recordings turned to `test_orientations` if given
-    (`with_test_orientations`), then with `train_recordings` training recordings if given
-    (`with_train_recordings`)."""
+    (`with_test_orientations`), then with as many recordings per split as `split_recordings` says
+    ({"train": 10, "val": 3}; `with_split_recordings`, new ones in that order)."""
     if name not in PRESETS:
         raise VisionForceError(f"unknown preset '{name}' (choose from {', '.join(PRESETS)})")
     preset = PRESETS[name]
     if test_orientations is not None:
         preset = with_test_orientations(preset, test_orientations)
-    return preset if train_recordings is None else with_train_recordings(preset, train_recordings)
+    for split in ("train", "val"):
+        if (split_recordings or {}).get(split) is not None:
+            preset = with_split_recordings(preset, split, split_recordings[split])
+    return preset
 
 
 def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Preset:
@@ -192,19 +195,24 @@ def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Pre
 
 
 def with_train_recordings(preset: Preset, count: int) -> Preset:
-    """The preset with `count` training recordings: its first `count` ones, or all of them and new ones
-    of the same length after every other recording (new ids, new draws). Each recording draws its tissue,
-    material, motion and camera from the seed and its index, so the other recordings stay as they were:
-    the same validation and test recordings, trained on fewer or more tissues (docs/results.md: on fresh
-    seeds the error on an unseen tissue is mostly a gain that its mechanics set, and it falls with the
-    number of tissues trained on)."""
+    """The preset with `count` training recordings (`with_split_recordings`)."""
+    return with_split_recordings(preset, "train", count)
+
+
+def with_split_recordings(preset: Preset, split: str, count: int) -> Preset:
+    """The preset with `count` recordings in `split` (train or val): its first `count` ones, or all of
+    them and new ones of the same length after every other recording (new ids, new draws). Each recording
+    draws its tissue, material, motion and camera from the seed and its index, so the other recordings
+    stay as they were: the same test recordings, trained (or validated) on fewer or more tissues
+    (docs/results.md: on fresh seeds the error on an unseen tissue is mostly a gain that its mechanics
+    set, and it falls with the number of tissues trained on)."""
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise VisionForceError(f"train recordings: {count!r} is not a number of recordings >= 1")
-    trains = [r for r in preset.recordings if r.split == "train"]
-    if not trains:
-        raise VisionForceError(f"train recordings: preset '{preset.name}' has no training recordings")
-    dropped = {r.index for r in trains[count:]}
+        raise VisionForceError(f"{split} recordings: {count!r} is not a number of recordings >= 1")
+    own = [r for r in preset.recordings if r.split == split]
+    if not own:
+        raise VisionForceError(f"{split} recordings: preset '{preset.name}' has none")
+    dropped = {r.index for r in own[count:]}
     start = len(preset.recordings)
-    extra = tuple(replace(trains[-1], index=start + k, id=f"{preset.name}_{start + k:03d}")
-                  for k in range(count - len(trains)))
+    extra = tuple(replace(own[-1], index=start + k, id=f"{preset.name}_{start + k:03d}")
+                  for k in range(count - len(own)))
     return replace(preset, recordings=tuple(r for r in preset.recordings if r.index not in dropped) + extra)

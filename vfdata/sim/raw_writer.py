@@ -6,7 +6,7 @@ deterministic: the same recording gives the same bytes.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -88,9 +88,9 @@ def check_image_format(image_format: str) -> tuple[str, list[int]]:
 
 def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progress_counter=None,
                     image_format: str = "jpeg", test_orientations: Sequence[float] | None = None,
-                    train_recordings: int | None = None) -> None:
+                    split_recordings: Mapping[str, int] | None = None) -> None:
     """Simulate and render `rec` into the (new, empty) raw recording folder `folder`, the stereo views
-    as `image_format` ('jpeg' or 'png'); `test_orientations` and `train_recordings`, if the preset's were
+    as `image_format` ('jpeg' or 'png'); `test_orientations` and `split_recordings`, if the preset's were
     replaced, are named in the metadata's `source`."""
     suffix, image_params = check_image_format(image_format)
     spec = rec.spec
@@ -171,7 +171,7 @@ def write_recording(rec: Recording, folder: Path, preset: str, seed: int, progre
         "split": rec.plan.split,
         "prompt_box": first_box,
         "synthetic": True,
-        "source": f"vfdata synth --preset {preset} --seed {seed}{_layout_options(test_orientations, train_recordings)} "
+        "source": f"vfdata synth --preset {preset} --seed {seed}{_layout_options(test_orientations, split_recordings)} "
                   f"({rec.plan.id})",
     }
     (folder / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
@@ -238,8 +238,9 @@ def number(x: float) -> int | float:
     return int(x) if float(x).is_integer() else float(x)
 
 
-def _layout_options(test_orientations: Sequence[float] | None, train_recordings: int | None) -> str:
+def _layout_options(test_orientations: Sequence[float] | None, split_recordings: Mapping[str, int] | None) -> str:
     """The `vfdata synth` options that changed the preset's recordings, as typed."""
     orientations = "" if test_orientations is None else \
         " --test-orientations " + ",".join(str(number(a)) for a in test_orientations)
-    return orientations + ("" if train_recordings is None else f" --train-recordings {train_recordings}")
+    counts = "".join(f" --{split}-recordings {n}" for split, n in (split_recordings or {}).items() if n is not None)
+    return orientations + counts

@@ -11,7 +11,7 @@ import json
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -83,10 +83,10 @@ def _init_worker(counter) -> None:
     set_threads(1)
 
 
-def _make_one(args: tuple[str, int, int, str, int | None, str, tuple[float, ...] | None, int | None]) -> str:
+def _make_one(args: tuple[str, int, int, str, int | None, str, tuple[float, ...] | None, dict | None]) -> str:
     """Worker: make one recording (the parent already checked what may be replaced)."""
-    preset_name, seed, index, out_dir, frames, image_format, test_orientations, train_recordings = args
-    preset = get_preset(preset_name, test_orientations, train_recordings)
+    preset_name, seed, index, out_dir, frames, image_format, test_orientations, split_recordings = args
+    preset = get_preset(preset_name, test_orientations, split_recordings)
     plan = next(r for r in preset.recordings if r.index == index)
     rec = build_recording(plan, seed, frames, preset.width, preset.height)
     target = Path(out_dir) / plan.id
@@ -98,23 +98,27 @@ def _make_one(args: tuple[str, int, int, str, int | None, str, tuple[float, ...]
         return "kept"
     with atomic_output(target, overwrite=True) as tmp:
         tmp.mkdir()
-        write_recording(rec, tmp, preset_name, seed, _COUNTER, image_format, test_orientations, train_recordings)
+        write_recording(rec, tmp, preset_name, seed, _COUNTER, image_format, test_orientations, split_recordings)
     return "made"
 
 
 def synthesize(preset: str, out_dir: str | Path, seed: int = 0, workers: int = 1, progress: bool = True,
                frames: int | None = None, overwrite: bool = False, image_format: str = "jpeg",
-               test_orientations: Sequence[float] | None = None, train_recordings: int | None = None) -> Path:
+               test_orientations: Sequence[float] | None = None,
+               split_recordings: Mapping[str, int] | None = None) -> Path:
     """Write the preset's recordings under out_dir (one raw folder each, with ground_truth/) and
     `<preset>.manifest.yaml`; returns the manifest path. The stereo views are JPEG (quality 95) or,
     with image_format='png', lossless PNG. `test_orientations` (degrees about the vertical) replace
     the preset's test orientations, spread over its test recordings (presets.with_test_orientations);
-    `train_recordings` sets how many training recordings (tissues) it has (presets.with_train_recordings).
+    `split_recordings` ({"train": 10, "val": 3}) sets how many training and validation recordings
+    (tissues) it has (presets.with_split_recordings).
     Recordings already made with the same generator settings are kept; other existing ones are
     refused unless `overwrite`."""
     if test_orientations is not None:
         test_orientations = tuple(float(a) for a in test_orientations)
-    p = get_preset(preset, test_orientations, train_recordings)
+    if split_recordings is not None:
+        split_recordings = {k: v for k, v in split_recordings.items() if v is not None}
+    p = get_preset(preset, test_orientations, split_recordings)
     check_image_format(image_format)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -130,7 +134,7 @@ def synthesize(preset: str, out_dir: str | Path, seed: int = 0, workers: int = 1
                 if not _is_complete(target, key):
                     raise OutputExistsError(target)
     total = sum(r.frames if frames is None else frames for r in p.recordings)
-    jobs = [(preset, int(seed), r.index, str(out), frames, image_format, test_orientations, train_recordings)
+    jobs = [(preset, int(seed), r.index, str(out), frames, image_format, test_orientations, split_recordings)
             for r in p.recordings]
     # Workers are fresh processes with single-threaded BLAS: faster on few cores, and the same
     # floating-point results whatever the number of workers.
