@@ -58,8 +58,7 @@ def ensemble(frames: list[dict], references: list[float]) -> dict[str, np.ndarra
     mirror = np.mean([f["spread"] for f in frames], axis=0)
     spread = pred.std(axis=0)
     return {"pred": pred.mean(axis=0), "true": frames[0]["true"], "mirror": mirror, "members": spread,
-            "both": np.hypot(mirror, spread), "distance": distance.mean(axis=0),
-            "view": frames[0].get("orientation_deg")}
+            "both": np.hypot(mirror, spread), "distance": distance.mean(axis=0)}
 
 
 def study(datasets: list[Path], variant: str) -> dict:

@@ -159,10 +159,16 @@ def get_preset(name: str, test_orientations: Sequence[float] | None = None,
     preset = PRESETS[name]
     if test_orientations is not None:
         preset = with_test_orientations(preset, test_orientations)
-    for split in ("train", "val"):
-        if (split_recordings or {}).get(split) is not None:
-            preset = with_split_recordings(preset, split, split_recordings[split])
+    for split, count in counted_splits(split_recordings):
+        preset = with_split_recordings(preset, split, count)
     return preset
+
+
+def counted_splits(split_recordings: Mapping[str, int | None] | None) -> list[tuple[str, int]]:
+    """(split, count) of the splits whose count is given, train before val: the order new recordings
+    are added in (their indices, so their draws, depend on it)."""
+    given = split_recordings or {}
+    return [(split, given[split]) for split in ("train", "val") if given.get(split) is not None]
 
 
 def with_test_orientations(preset: Preset, orientations: Sequence[float]) -> Preset:

@@ -18,7 +18,7 @@ import vfdata
 from vfdata.calibration import PinholeCamera, StereoCalibration
 from vfdata.errors import InputError, VisionForceError
 from vfdata.sim.png import encode_png16
-from vfdata.sim.presets import FPS, RecordingPlan
+from vfdata.sim.presets import FPS, RecordingPlan, counted_splits
 from vfdata.sim.scene import SceneRenderer
 from vfdata.sim.simulation import PHYSICS_HZ, Recording, sensor_samples, simulate
 
@@ -242,5 +242,5 @@ def _layout_options(test_orientations: Sequence[float] | None, split_recordings:
     """The `vfdata synth` options that changed the preset's recordings, as typed."""
     orientations = "" if test_orientations is None else \
         " --test-orientations " + ",".join(str(number(a)) for a in test_orientations)
-    counts = "".join(f" --{split}-recordings {n}" for split, n in (split_recordings or {}).items() if n is not None)
+    counts = "".join(f" --{split}-recordings {n}" for split, n in counted_splits(split_recordings))
     return orientations + counts

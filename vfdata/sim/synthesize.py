@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from vfdata.atomic import atomic_output
 from vfdata.errors import InputError, OutputExistsError
-from vfdata.sim.presets import Preset, get_preset
+from vfdata.sim.presets import Preset, counted_splits, get_preset
 from vfdata.sim.raw_writer import (
     IMAGE_FORMATS,
     N_MATERIAL_POINTS,
@@ -116,8 +116,7 @@ def synthesize(preset: str, out_dir: str | Path, seed: int = 0, workers: int = 1
     refused unless `overwrite`."""
     if test_orientations is not None:
         test_orientations = tuple(float(a) for a in test_orientations)
-    if split_recordings is not None:
-        split_recordings = {k: v for k, v in split_recordings.items() if v is not None}
+    split_recordings = dict(counted_splits(split_recordings)) or None
     p = get_preset(preset, test_orientations, split_recordings)
     check_image_format(image_format)
     out = Path(out_dir)
