@@ -12,7 +12,9 @@ run's training clips, as training now does). Then:
 - the calibration plot, OUT/band_calibration.png: for stated coverages 50-98% the band calibrated on
   validation at that coverage (`vfmodels.evaluation.band.calibrate`), and the share of test frames inside it, pooled
   and per view (grey), against the diagonal.
-Writes OUT/band.json and OUT/band.md and prints the table.
+Writes OUT/band.json and OUT/band.md and prints the table. `--val-recordings K` calibrates on the first K
+validation recordings only: on a dataset made with `vfdata synth --val-recordings 3`, the band of one
+validation tissue against three, on the same model.
 
     python bench/band_calibration.py --out /tmp/band RESULTS/runs/visionforce/seed0 [MORE ...]
 """
@@ -89,6 +91,13 @@ def band_for(val: dict, test: dict, coverage: float, stretched: bool = True) -> 
     return half * stretch(test["distance"], c.distance_ref)[:, None] if stretched else half
 
 
+def first_recordings(frames: dict, k: int) -> dict:
+    """The frames of the first k recordings, in the order they come (the manifest's)."""
+    names = list(dict.fromkeys(frames["recording"].astype(str).tolist()))[:k]
+    keep = np.isin(frames["recording"].astype(str), names)
+    return {key: value[keep] for key, value in frames.items()}
+
+
 def views_of(test: dict) -> list[tuple[str, float]]:
     return sorted(set(zip(test["recording"].astype(str).tolist(), test["orientation_deg"].tolist(), strict=True)))
 
@@ -99,11 +108,16 @@ def main() -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--no-stretch", dest="stretched", action="store_false",
                         help="the band without its stretch by the embedding distance (as before 2026-12-05)")
+    parser.add_argument("--val-recordings", type=int, metavar="K",
+                        help="calibrate on the first K validation recordings only (the same model: what more "
+                             "validation tissues do to the band alone)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows, curves = [], {"pooled": [], "views": []}
     for run in args.runs:
         val, test = frames_of(run, args.out)
+        if args.val_recordings:
+            val = first_recordings(val, args.val_recordings)
         known = np.isfinite(test["true"]).all(axis=1)
         test = {k: v[known] for k, v in test.items()}
         label = "/".join(run.parts[-5:-3])
