@@ -190,7 +190,10 @@ def test_the_report_lists_coverage_and_width_per_view():
     row = next(line for line in text.splitlines() if "| 270° |" in line)
     cells = [c.strip() for c in row.split("|")]
     assert cells[3] == "2" and all(v.endswith("%") for v in cells[4].split(" / "))
-    assert "Spearman(half-width, RMSE) over 6 views" in text
+    assert "Spearman(half-width, RMSE) over 6 views" in text and "validation recording" not in text
+    one = band_markdown({"visionforce": [run]}, {"visionforce": "VisionForce"}, "colon", val_recordings=1)
+    assert "calibrated on one validation recording" in one and "validate on 3 or more" in one
+    assert "calibrated on 3 validation recordings" in band_markdown({"visionforce": [run]}, {}, "c", val_recordings=3)
     unlike = {"share": 0.05, "frames": 30, "rmse": 2.5, "rmse_rest": 1.2}
     text = band_markdown({"visionforce": [{**run, "unfamiliar": unlike}]}, {"visionforce": "VisionForce"}, "colon")
     assert "VisionForce: 5.0% of test frames have an input unlike training's" in text and "RMSE there 2.50 N" in text

@@ -18,7 +18,7 @@ from vfdata.manifest import load_manifest
 from vfdata.recording import Recording
 from vfmodels.experiment import report, runner
 from vfmodels.experiment.prepare import any_depth_only, derived_path, prepare
-from vfmodels.experiment.report import doubtful_markdown
+from vfmodels.experiment.report import doubtful_markdown, validation_recordings
 from vfmodels.experiment.ridge_run import config_spec
 from vfmodels.experiment.runner import CONFIGS
 from vfmodels.experiment.variants import ALL_VARIANTS, PAPER_VARIANTS, VISIONFORCE_TRACKER, for_depth_only
@@ -105,6 +105,20 @@ def test_doubtful_training_recordings_are_left_out_unless_kept(tmp_path):
         runner.tracker_manifest(manifest, "klt", tmp_path / "out" / "none.manifest.yaml")
     md = doubtful_markdown(doubtful)
     assert f"| {val.id} | val | klt | end | no |" in md
+
+
+def test_validation_recordings_counts_what_the_band_was_calibrated_on(tmp_path):
+    from vfdata.manifest import ManifestEntry
+
+    def entry(name, split, mcap, frames=None):
+        return ManifestEntry(name, 0.0, split, tmp_path, tmp_path / mcap, tmp_path / f"{name}.d.mcap", frames)
+
+    entries = [entry("t", "train", "t.mcap"), entry("v1", "val", "v1.mcap"), entry("v2", "val", "v2.mcap"),
+               entry("v3a", "val", "v3.mcap", (0, 50)), entry("v3b", "val", "v3.mcap", (50, 99)),
+               entry("x", "test", "x.mcap")]
+    assert validation_recordings(entries, []) == 3  # two frame ranges of one recording: one tissue
+    left = [{"id": "v1", "split": "val", "left_out": True}, {"id": "v2", "split": "val", "left_out": False}]
+    assert validation_recordings(entries, left) == 2
 
 
 def test_missing_recording_names_the_fix(tmp_path):

@@ -57,7 +57,8 @@ def _in_table(name: str, table: str) -> bool:
     return table in ALL_VARIANTS.get(name, Variant(name, name, "")).table.split("+")
 
 
-def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: dict[str, str]) -> dict[str, Path]:
+def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: dict[str, str],
+                 val_recordings: int | None = None) -> dict[str, Path]:
     aggregated = {name: tables.aggregate_seeds(r) for name, r in runs.items()}
     paths = {}
     for key, number, stem, title in (
@@ -74,7 +75,7 @@ def force_tables(out: Path, runs: dict[str, list[dict]], dataset: str, labels: d
     if transfer:
         (out / "transfer.md").write_text(transfer)
         paths["transfer.md"] = out / "transfer.md"
-    sure = tables.band_markdown(runs, labels, dataset)
+    sure = tables.band_markdown(runs, labels, dataset, val_recordings)
     if sure:
         (out / "band.md").write_text(sure)
         paths["band.md"] = out / "band.md"
@@ -312,7 +313,8 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
     # on RGB-D recordings the variants ran as flat tissue (variants.for_depth_only): the labels say so
     variants = list(ALL_VARIANTS.values())
     labels = {v.name: v.label for v in (for_depth_only(variants) if ran.get("flat_tissue") else variants)}
-    paths = force_tables(out, runs, data.name, labels) if runs else {}
+    doubtful = json.loads((out / "doubtful.json").read_text()) if (out / "doubtful.json").is_file() else []
+    paths = force_tables(out, runs, data.name, labels, validation_recordings(entries, doubtful)) if runs else {}
     trackers = [t for t in TRACKER_SUFFIX if any(derived_path(e, t).is_file() for e in entries)]
     rows, per_recording = tracking_table(entries, trackers)
     if rows:
@@ -331,11 +333,17 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
         (out / "timing.json").write_text(json.dumps(rates, indent=2))
         paths["timing.md"] = out / "timing.md"
     paths.update(write_figures(out, entries, trackers or ["geometry"], data.name))
-    doubtful = json.loads((out / "doubtful.json").read_text()) if (out / "doubtful.json").is_file() else []
     if doubtful:
         (out / "doubtful.md").write_text(doubtful_markdown(doubtful))
         paths["doubtful.md"] = out / "doubtful.md"
     return paths
+
+
+def validation_recordings(entries: list[ManifestEntry], doubtful: list[dict]) -> int:
+    """How many recordings the runs validated on: the manifest's validation entries less those the grid left
+    out as doubtful, frame ranges of one recording counted once."""
+    left_out = {d["id"] for d in doubtful if d.get("left_out")}
+    return len({e.mcap for e in entries if e.split == "val" and e.id not in left_out})
 
 
 def doubtful_markdown(doubtful: list[dict]) -> str:

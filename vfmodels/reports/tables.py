@@ -69,10 +69,12 @@ def run_metrics(predictions: Mapping[str, np.ndarray]) -> dict:
     return result
 
 
-def band_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, str], dataset: str) -> str:
+def band_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, str], dataset: str,
+                  val_recordings: int | None = None) -> str:
     """How sure each model is at each test orientation: the stated band's coverage and mean half-width
     (N) per component against the RMSE there, means over seeds, and Spearman's correlation between the
-    per-view half-width and RMSE over every seed's views. Empty when no run has a band."""
+    per-view half-width and RMSE over every seed's views; with `val_recordings`, how many recordings the
+    band was calibrated on. Empty when no run has a band."""
     rows = {name: [r for r in found if "band" in r] for name, found in runs.items()}
     rows = {name: found for name, found in rows.items() if found}
     if not rows:
@@ -108,6 +110,14 @@ def band_markdown(runs: Mapping[str, Sequence[Mapping]], labels: Mapping[str, st
                          "(embedding beyond 99% of validation's), RMSE there "
                          + ", ".join(f"{u['rmse']:.2f}" for u in unlike) + " N against "
                          + ", ".join(f"{u['rmse_rest']:.2f}" for u in unlike) + " N elsewhere (per seed)")
+    if val_recordings == 1:
+        # Measured on fresh simulated tissues (docs/results.md, "Three validation tissues"): one validation
+        # tissue is one draw of the tissue-to-tissue gain that dominates the error on a new specimen.
+        notes.append("The band was calibrated on one validation recording: its coverage and the validation RMSE "
+                     "speak for that one tissue; on new specimens validate on 3 or more (docs/experiments.md, "
+                     "\"How many tissues to record\")")
+    elif val_recordings:
+        notes.append(f"The band was calibrated on {val_recordings} validation recordings, pooled")
     return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
