@@ -30,6 +30,7 @@ from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedWriter
 from vfdata.rig import rig_for
 from vfdata.threads import DEFAULT_THREADS, thread_limit
+from vfdata.tissue_lean import lean_deg
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
 log = logging.getLogger(__name__)
@@ -179,6 +180,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
                                                              "end", "doubtful")})),
         **confidence.metadata(),
         "up_known": str(engine.up is not None).lower(),
+        **_lean(engine),
         "stage_fps": json.dumps({k: round(v, 2) for k, v in engine.clock.fps(frames).items()}),
         "stage_threads": str(threads),
         # Beside the rates: whether the machine was shared while they were measured (load > cores: it was).
@@ -186,6 +188,13 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         "stage_load_1min": f"{os.getloadavg()[0]:.2f}",
         "converter_version": __version__,
     }
+
+
+def _lean(engine: FrameEngine) -> dict[str, str]:
+    """The tissue's lean below level (deg, `vfdata.tissue_lean`), where gravity is known."""
+    if engine.up is None or engine.frame.kind != "tissue":
+        return {}
+    return {"tissue_lean_deg": f"{lean_deg(engine.frame.z_axis, engine.up):.2f}"}
 
 
 def _jsonable(value):

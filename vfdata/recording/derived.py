@@ -168,6 +168,12 @@ class DerivedMeta:
         return self.flag("up_known")
 
     @property
+    def tissue_lean_deg(self) -> float | None:
+        """The tissue's lean below level (deg, `vfdata.tissue_lean`); None without gravity, for a frame that is
+        not the tissue's, and in files from before 2026-12-06."""
+        return self.number("tissue_lean_deg")
+
+    @property
     def object_frame_kind(self) -> str:
         """'tissue', 'board_plane' or 'camera' (files before 2026-12-03: 'tissue')."""
         return self.values.get("object_frame_kind", "tissue")

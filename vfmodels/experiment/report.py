@@ -16,6 +16,7 @@ from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
 from vfdata.rig import rig_for
+from vfdata.tissue_lean import lean_markdown, lean_report, read_lean
 from vfdata.tracker_kinds import tracker_label
 from vfdata.tracking import ground_truth_tracks
 from vfmodels.experiment.prepare import derived_path
@@ -336,7 +337,24 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
     if doubtful:
         (out / "doubtful.md").write_text(doubtful_markdown(doubtful))
         paths["doubtful.md"] = out / "doubtful.md"
+    paths.update(write_lean(out, entries, trackers, doubtful))
     return paths
+
+
+def write_lean(out: Path, entries: list[ManifestEntry], trackers: list[str], doubtful: list[dict]) -> dict[str, Path]:
+    """`lean.json` and `lean.md`: how each tissue hangs against the training tissues (`vfdata.tissue_lean`), where
+    gravity is known; nothing otherwise."""
+    leans = {}
+    for entry in entries:
+        derived = next((derived_path(entry, t) for t in trackers if derived_path(entry, t).is_file()), None)
+        if derived is not None and entry.id not in leans:
+            leans[entry.id] = (entry.split, read_lean(derived, entry.mcap))
+    report = lean_report(leans, {d["id"] for d in doubtful})
+    if not report["training_deg"] or not report["recordings"]:
+        return {}
+    (out / "lean.json").write_text(json.dumps(report, indent=1))
+    (out / "lean.md").write_text(lean_markdown(report))
+    return {"lean.md": out / "lean.md"}
 
 
 def validation_recordings(entries: list[ManifestEntry], doubtful: list[dict]) -> int:
@@ -361,7 +379,8 @@ def doubtful_markdown(doubtful: list[dict]) -> str:
 def summary_text(paths: dict[str, Path]) -> str:
     """What the command prints at the end: Table I (or II), how sure (the band per view), the claims and where
     everything is."""
-    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "band.md", "doubtful.md") if key in paths]
+    lines = [paths[key].read_text() for key in ("table1.md", "table2.md", "band.md", "doubtful.md", "lean.md")
+             if key in paths]
     if "claims" in paths:
         for claim in json.loads(paths["claims"].read_text()).values():
             lines.append(f"- {claim['text']}: {'yes' if claim['holds'] else 'NO'}")

@@ -1,0 +1,131 @@
+"""How a tissue hangs (`vfdata.tissue_lean`): the lean below level of a processed recording's object frame,
+and the experiment's note on recordings whose tissue hangs unlike the training tissues."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+from vfdata.manifest import load_manifest
+from vfdata.processing import ProcessOptions, process_recording
+from vfdata.recording.derived import DerivedRecording
+from vfdata.sim import synthesize
+from vfdata.tissue_lean import MARGIN_DEG, beyond_range, lean_deg, lean_markdown, lean_report, lean_warnings, read_lean
+from vfmodels.experiment.report import write_lean
+
+UP = np.array([0.0, -1.0, 0.0])  # a camera looking level: up is -y
+
+
+def along(down_deg: float) -> np.ndarray:
+    """A unit Z running along the camera's x and `down_deg` below level."""
+    a = np.radians(down_deg)
+    return np.array([np.cos(a), np.sin(a), 0.0])
+
+
+@pytest.mark.parametrize("down", [0.0, 6.0, -3.0, 45.0])
+def test_the_lean_is_the_angle_below_level(down):
+    assert lean_deg(along(down), UP) == pytest.approx(down, abs=1e-9)
+    assert lean_deg(along(down) * 3.0, UP * 2.0) == pytest.approx(down, abs=1e-9)  # any lengths
+
+
+def test_beyond_the_training_range_only_past_the_margin():
+    training = [4.0, 5.5, 7.0]
+    assert beyond_range(5.0, training) == 0.0
+    assert beyond_range(7.9, training) == 0.0 and beyond_range(3.1, training) == 0.0  # within 1 deg (MARGIN_DEG)
+    assert beyond_range(8.5, training) == pytest.approx(1.5)   # softer: hangs lower
+    assert beyond_range(2.5, training) == pytest.approx(-1.5)  # stiffer: hangs higher
+    assert beyond_range(7.4, training, margin=0.0) == pytest.approx(0.4)
+
+
+def test_the_report_ranges_over_the_training_recordings_kept():
+    leans = {"a": ("train", 4.0), "b": ("train", 6.0), "c": ("train", 12.0), "v": ("val", 7.5),
+             "t1": ("test", 5.0), "t2": ("test", 2.0), "t3": ("test", None), "t4": ("test", 19.0)}
+    report = lean_report(leans, doubtful={"c", "t4"})  # judged doubtful: their frames, so leans, may be wrong
+    assert report["training_deg"] == [4.0, 6.0] and report["training_recordings"] == 2
+    rows = {r["id"]: r for r in report["recordings"]}
+    assert set(rows) == {"v", "t1", "t2"}  # no lean (no gravity) or doubtful: not judged
+    assert rows["v"]["beyond_deg"] == pytest.approx(1.5) and rows["t1"]["beyond_deg"] == 0.0
+    warnings = lean_warnings(report)
+    assert len(warnings) == 2
+    assert warnings[0].startswith("v (val) hangs 7.5 deg") and "softer" in warnings[0]
+    assert warnings[1].startswith("t2 (test) hangs 2.0 deg") and "stiffer" in warnings[1]
+    text = lean_markdown(report)
+    assert "| t2 | test | 2.0 | -2.0 |" in text and "| t1 | test | 5.0 | |" in text
+
+
+def test_without_gravity_there_is_no_range_and_no_warning():
+    report = lean_report({"a": ("train", None), "t": ("test", 3.0)})
+    assert report["training_deg"] is None and report["recordings"] == [] and lean_warnings(report) == []
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    """The three recordings of a `mini` dataset (train, val, test: three tissues), processed, 4 frames each."""
+    root = tmp_path_factory.mktemp("sim")
+    synthesize("mini", root, seed=3, frames=4, progress=False)
+    for name in ("mini_000", "mini_001", "mini_002"):
+        mcap = convert_raw_folder(root / name, root / f"{name}.mcap", options=ConvertOptions(progress=False))
+        process_recording(mcap, options=ProcessOptions(progress=False, tracker="none"))
+    return root
+
+
+def test_process_writes_the_lean_against_gravity(dataset):
+    processed = dataset / "mini_000.processed.mcap"
+    with DerivedRecording.open(processed) as derived:
+        lean, z = derived.meta.tissue_lean_deg, derived.object_frame.z_axis
+    truth = json.loads((dataset / "mini_000" / "ground_truth" / "object_frame.json").read_text())
+    # the simulator's clamp is level and its object frame's X is gravity-up: the lean is Z's angle below it
+    assert lean == pytest.approx(lean_deg(z, np.asarray(truth["rotation"])[:, 0]), abs=0.01)
+    assert 0.0 < lean < 15.0  # the tissue hangs from its clamp
+    assert read_lean(processed, dataset / "mini_000.mcap") == pytest.approx(lean)
+
+
+def test_files_from_before_get_the_lean_from_the_raw_recordings_gravity(dataset, tmp_path):
+    """A derived file without the key (written before 2026-12-06) gets the same lean from its object frame
+    and the raw recording's ECM pose."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    processed, old = dataset / "mini_000.processed.mcap", tmp_path / "old.processed.mcap"
+    with open(processed, "rb") as src, open(old, "wb") as dst:
+        reader, writer = make_reader(src), Writer(dst)
+        summary = reader.get_summary()
+        writer.start(profile=reader.get_header().profile, library="test")
+        schemas = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
+        channels = {cid: writer.register_channel(c.topic, c.message_encoding, schemas.get(c.schema_id, 0),
+                                                 c.metadata) for cid, c in summary.channels.items()}
+        for _, channel, message in reader.iter_messages():
+            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, {k: v for k, v in record.metadata.items() if k != "tissue_lean_deg"})
+        writer.finish()
+    with DerivedRecording.open(old) as derived:
+        assert derived.meta.tissue_lean_deg is None
+    with DerivedRecording.open(processed) as derived:
+        assert read_lean(old, dataset / "mini_000.mcap") == pytest.approx(derived.meta.tissue_lean_deg, abs=0.01)
+
+
+def test_the_experiment_report_names_a_tissue_unlike_training(dataset, tmp_path):
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text("name: m\nrecordings:\n" + "".join(
+        f"  - {{id: {name}, mcap: {dataset / name}.mcap, split: {split}}}\n"
+        for name, split in (("mini_000", "train"), ("mini_001", "val"), ("mini_002", "test"))))
+    entries = list(load_manifest(manifest).entries)
+    leans = {e.id: read_lean(dataset / f"{e.id}.processed.mcap", e.mcap) for e in entries}
+    paths = write_lean(tmp_path, entries, ["geometry"], [])
+    report = json.loads((tmp_path / "lean.json").read_text())
+    assert paths == {"lean.md": tmp_path / "lean.md"}
+    assert report["training_deg"] == [round(leans["mini_000"], 2)] * 2
+    rows = {r["id"]: r for r in report["recordings"]}
+    for name in ("mini_001", "mini_002"):
+        assert rows[name]["lean_deg"] == pytest.approx(leans[name], abs=0.01)
+        assert rows[name]["beyond_deg"] == pytest.approx(beyond_range(leans[name], [leans["mini_000"]]), abs=0.01)
+    named = [name for name in ("mini_001", "mini_002") if abs(leans[name] - leans["mini_000"]) > MARGIN_DEG]
+    text = (tmp_path / "lean.md").read_text()
+    assert all(f"- {name} (" in text for name in named)
+    # the training recording doubtful: no range, no report
+    assert write_lean(tmp_path / "none", entries, ["geometry"], [{"id": "mini_000", "left_out": True}]) == {}

@@ -1,0 +1,111 @@
+"""Does a tissue hang like the tissues a model was trained on? Its lean under gravity, a free stiffness cue.
+
+A tissue clamped at one end hangs under its own weight: the straight axis through it (the object frame's Z,
+from the clamped end to the free one) leans below the clamp's axis, and a softer tissue leans more. The
+error of a force model on a tissue it never saw is mostly a gain that the tissue's stiffness sets
+(docs/results.md, "The tissues trained on"), which its shape alone cannot tell; the lean can, in part. On
+the sweep of fresh `colon` seeds (docs/results.md, "The lean"; `bench/study_droop_gain.py`) the model's log
+gain on a recording rises with its lean against the training tissues' (Spearman +0.45 over 47 validation
+and test recordings), and test recordings that hang outside the training tissues' range by more than
+`MARGIN_DEG` had a median RMSE 1.4x that of the others.
+
+The lean is measured against the horizontal (gravity from the ECM pose), so it needs `up_known`; what
+matters is the lean relative to the training recordings', so a clamp that is not level but the same for
+every recording cancels out. A lab that changes the fixture between specimens changes the lean too.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from vfdata.recording import Recording
+from vfdata.recording.derived import DerivedRecording
+from vfdata.rig import rig_for
+
+# Beyond the training tissues' range by more than this (deg) is worth a note: about the lean's own error
+# (against the simulator's tissue axis: rms 1.3 deg, median 0.9 over the sweep's colon recordings).
+MARGIN_DEG = 1.0
+
+
+def lean_deg(z_axis: np.ndarray, up: np.ndarray) -> float:
+    """The angle (deg) of an object frame's Z (unit, clamped end -> free end) below the horizontal, `up`
+    gravity-up in the same coordinates: positive where the free end hangs lower than the clamped one."""
+    z = np.asarray(z_axis, dtype=np.float64)
+    u = np.asarray(up, dtype=np.float64)
+    sine = float(z @ u) / (np.linalg.norm(z) * np.linalg.norm(u))
+    return float(-np.degrees(np.arcsin(np.clip(sine, -1.0, 1.0))))
+
+
+def beyond_range(lean: float, training: list[float], margin: float = MARGIN_DEG) -> float:
+    """How far (deg) `lean` lies outside the range of the `training` leans, less `margin`: 0 within;
+    negative for a tissue hanging higher (stiffer), positive lower (softer)."""
+    low, high = min(training), max(training)
+    if lean < low - margin:
+        return lean - low
+    if lean > high + margin:
+        return lean - high
+    return 0.0
+
+
+def lean_report(leans: Mapping[str, tuple[str, float | None]], doubtful: set[str] = frozenset(),
+                margin: float = MARGIN_DEG) -> dict:
+    """From id -> (split, lean deg or None) of a manifest's recordings: the training range and, per validation
+    or test recording, its lean and how far beyond. Recordings judged `doubtful` (`vfdata.confidence`) count
+    nowhere: their object frame, so their lean, may be wrong, and the doubt is said already."""
+    kept = {rid: (split, lean) for rid, (split, lean) in leans.items()
+            if rid not in doubtful and lean is not None and math.isfinite(lean)}
+    train = [lean for split, lean in kept.values() if split == "train"]
+    rows = [{"id": rid, "split": split, "lean_deg": round(lean, 2),
+             "beyond_deg": round(beyond_range(lean, train, margin), 2)}
+            for rid, (split, lean) in kept.items() if split != "train" and train]
+    return {"training_deg": [round(min(train), 2), round(max(train), 2)] if train else None,
+            "training_recordings": len(train), "margin_deg": margin, "recordings": rows}
+
+
+def lean_warnings(report: dict) -> list[str]:
+    """One line per validation or test recording whose tissue hangs outside the training tissues' range."""
+    if not report["training_deg"]:
+        return []
+    low, high = report["training_deg"]
+    lines = []
+    for row in report["recordings"]:
+        if row["beyond_deg"]:
+            kind = "stiffer" if row["beyond_deg"] < 0 else "softer"
+            lines.append(f"{row['id']} ({row['split']}) hangs {row['lean_deg']:.1f} deg below level where the training "
+                         f"tissues hang {low:.1f}-{high:.1f} deg: likely {kind} than any trained on; its forces may be "
+                         "off by a gain")
+    return lines
+
+
+def lean_markdown(report: dict) -> str:
+    """`lean.md`: the training range, each validation and test recording's lean, the warnings."""
+    low, high = report["training_deg"]
+    lines = ["# How the tissues hang", "",
+             f"Each recording's lean: the object frame's Z below the horizontal (deg; gravity from the ECM pose). "
+             f"A softer tissue hangs lower. The {report['training_recordings']} training recordings not doubtful hang "
+             f"{low:.1f}-{high:.1f} deg; a recording outside that range by more than {report['margin_deg']} deg is "
+             "a tissue unlike those trained on (docs/results.md, \"The lean\").", "",
+             "| recording | split | lean (deg) | beyond training (deg) |", "| --- | --- | ---: | ---: |"]
+    lines += [f"| {r['id']} | {r['split']} | {r['lean_deg']:.1f} | {r['beyond_deg']:+.1f} |" if r["beyond_deg"] else
+              f"| {r['id']} | {r['split']} | {r['lean_deg']:.1f} | |" for r in report["recordings"]]
+    notes = lean_warnings(report)
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(f"- {n}" for n in notes) + "\n" if notes else "")
+
+
+def read_lean(derived: Path, raw: Path) -> float | None:
+    """A processed recording's lean (deg): as `vfdata process` wrote it, or, in files from before it did, from
+    their object frame and the raw recording's gravity (`raw`, its MCAP). None where gravity is unknown or the
+    frame is not the tissue's."""
+    with DerivedRecording.open(derived) as d:
+        meta, frame = d.meta, d.object_frame
+    if meta.tissue_lean_deg is not None:
+        return float(meta.tissue_lean_deg)
+    if not meta.up_known or meta.object_frame_kind != "tissue" or frame is None:
+        return None
+    with Recording.open(raw) as rec:
+        up = rig_for(rec, raw).up
+    return None if up is None else lean_deg(frame.z_axis, up)
