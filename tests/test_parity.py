@@ -72,7 +72,9 @@ def ckpt(root, spec) -> Path:
                                                  (-0.5, -0.5, 0.46), (0.5, 0.5, 0.47), distance_limit=LIMIT)
     regressor.embedding_reference = (torch.zeros(32, dtype=torch.float64), torch.eye(32, dtype=torch.float64))
     checkpoint = {"state_dict": regressor.state_dict(), "hyper_parameters": dict(regressor.hparams),
-                  "datamodule_hyper_parameters": {"spec": spec}, "ForceDataModule": {"tracker": "klt"}}
+                  "datamodule_hyper_parameters": {"spec": spec},
+                  # training tissues that hung 30-35 deg below level: far softer than the mini's, which is named
+                  "ForceDataModule": {"tracker": "klt", "tissue_lean_deg": [30.0, 35.0]}}
     regressor.on_save_checkpoint(checkpoint)
     path = root / f"visionforce_{spec['features']}.ckpt"
     torch.save(checkpoint, path)
@@ -180,6 +182,17 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
             meta = rec.metadata_records["visionforce.derived"]
             marked[name] = (meta["frames_beyond_training"], meta["frames_unlike_training"])
     assert marked["offline"] == marked["stream"] and marked["offline"][1] == str(FRAMES)
+    # and of the tissue's lean against the training tissues' (vfdata.tissue_lean): the same words everywhere
+    leans = {}
+    for name, path in {"offline": predicted[0], **files}.items():
+        with Recording.open(path) as rec:
+            leans[name] = json.loads(rec.metadata_records["visionforce.derived"]["tissue_lean"])
+    offline_lean = leans.pop("offline")
+    assert offline_lean["training_deg"] == [30.0, 35.0] and offline_lean["lean_deg"] < 29.0
+    assert offline_lean["unlike_training"].startswith(f"hangs {offline_lean['lean_deg']:.1f} deg below level")
+    assert "likely stiffer than any trained on" in offline_lean["unlike_training"]
+    for name, lean in leans.items():
+        assert lean == offline_lean, name
     for out in (predicted[1], streamed.getvalue()):
         assert f"warning: {FRAMES} of {FRAMES} frames look unlike any training frame" in out
         assert f"warning: {marked['offline'][0]} of {FRAMES} frames have a force beyond the training range" in out

@@ -3,6 +3,8 @@ checkpoint's clip spec, and the /force/estimate MCAP."""
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -584,3 +586,46 @@ def test_predict_on_an_rgbd_recording_says_its_board_frame(tmp_path):
     (times, forces), (stream_times, stream_forces) = read_force_estimate(offline), read_force_estimate(stream)
     assert len(times) == 6 and np.array_equal(times, stream_times)
     np.testing.assert_allclose(stream_forces, forces, rtol=1e-4, atol=1e-4)
+
+
+def test_the_training_tissues_lean_is_read_from_the_checkpoint(tmp_path):
+    path = _save_checkpoint(_regressor(), tmp_path / "k.ckpt")
+    assert predict.trained_lean(path) is None  # an older checkpoint does not say: no note
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["ForceDataModule"] = {"tracker": "klt", "tissue_lean_deg": [4.5, 7.25]}
+    torch.save(checkpoint, path)
+    assert predict.trained_lean(path) == [4.5, 7.25]
+    checkpoint["ForceDataModule"] = {"tissue_lean_deg": "low"}
+    torch.save(checkpoint, path)
+    with pytest.raises(InputError, match="not a range of two angles"):
+        predict.trained_lean(path)
+
+
+def test_predict_says_when_the_tissue_hangs_unlike_the_training_tissues(tmp_path):
+    """A model whose training tissues hung 20-25 deg below level (far stiffer tissues hang higher): the
+    recording's tissue is named, in the result and in the force file's metadata; within the range, not."""
+    from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
+    from vfdata.sim import synthesize
+    from vfdata.tissue_lean import read_lean
+
+    manifest = synthesize("mini", tmp_path / "data", seed=0, workers=1, progress=False, frames=6)
+    recording = convert_raw_folder(manifest.parent / "mini_002", tmp_path / "mini_002.mcap",
+                                   options=ConvertOptions(progress=False))
+    ckpt = _save_checkpoint(_regressor(), tmp_path / "m.ckpt", {"spec": {"input": "tracks", "fps": 30.0}})
+    checkpoint = torch.load(ckpt, weights_only=True)
+    checkpoint["ForceDataModule"] = {"tissue_lean_deg": [20.0, 25.0]}
+    torch.save(checkpoint, ckpt)
+    result = predict.predict_recording(recording, ckpt, tmp_path / "out", window=4, video=False, progress=False)
+    lean = read_lean(result.processed, recording)
+    assert lean is not None and lean < 19.0
+    assert result.lean_note.startswith(f"hangs {lean:.1f} deg below level where the training tissues hang 20.0-25.0 "
+                                       "deg: likely stiffer than any trained on")
+    with Recording.open(result.force_mcap) as rec:
+        said = json.loads(next(m["tissue_lean"] for m in rec.metadata_records.values() if "tissue_lean" in m))
+    assert said == {"lean_deg": round(lean, 2), "training_deg": [20.0, 25.0], "unlike_training": result.lean_note}
+
+    checkpoint["ForceDataModule"] = {"tissue_lean_deg": [lean - 2.0, lean + 2.0]}
+    torch.save(checkpoint, ckpt)
+    again = predict.predict_recording(recording, ckpt, tmp_path / "out", window=4, video=False, progress=False,
+                                      overwrite=True)
+    assert again.lean_note is None

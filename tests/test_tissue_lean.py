@@ -129,3 +129,18 @@ def test_the_experiment_report_names_a_tissue_unlike_training(dataset, tmp_path)
     assert all(f"- {name} (" in text for name in named)
     # the training recording doubtful: no range, no report
     assert write_lean(tmp_path / "none", entries, ["geometry"], [{"id": "mini_000", "left_out": True}]) == {}
+
+
+def test_a_checkpoint_remembers_how_the_training_tissues_hang(dataset, tmp_path):
+    """The data module's state (saved in every checkpoint, read by `vfdata predict`) holds the range of the
+    training recordings' leans, those judged doubtful left out."""
+    from vfdata.clips.datamodule import ForceDataModule
+
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text(f"name: m\nroot: {dataset}\nrecordings:\n"
+                        "  - {id: mini_000, split: train}\n  - {id: mini_001, split: train}\n"
+                        "  - {id: mini_002, split: test}\n")
+    leans = [read_lean(dataset / f"{name}.processed.mcap", dataset / f"{name}.mcap")
+             for name in ("mini_000", "mini_001")]
+    state = ForceDataModule.from_manifest(manifest, progress=False).state_dict()
+    assert state["tissue_lean_deg"] == [round(min(leans), 2), round(max(leans), 2)]

@@ -30,7 +30,7 @@ from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedWriter
 from vfdata.rig import rig_for
 from vfdata.threads import DEFAULT_THREADS, thread_limit
-from vfdata.tissue_lean import lean_deg
+from vfdata.tissue_lean import frame_lean
 from vfdata.tracking.registry import TRACKERS as TRACKER_NAMES
 
 log = logging.getLogger(__name__)
@@ -192,9 +192,8 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
 
 def _lean(engine: FrameEngine) -> dict[str, str]:
     """The tissue's lean below level (deg, `vfdata.tissue_lean`), where gravity is known."""
-    if engine.up is None or engine.frame.kind != "tissue":
-        return {}
-    return {"tissue_lean_deg": f"{lean_deg(engine.frame.z_axis, engine.up):.2f}"}
+    lean = frame_lean(engine.frame, engine.up)
+    return {} if lean is None else {"tissue_lean_deg": f"{lean:.2f}"}
 
 
 def _jsonable(value):

@@ -16,12 +16,14 @@ every recording cancels out. A lab that changes the fixture between specimens ch
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
+from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording
 from vfdata.recording.derived import DerivedRecording
 from vfdata.rig import rig_for
@@ -38,6 +40,11 @@ def lean_deg(z_axis: np.ndarray, up: np.ndarray) -> float:
     u = np.asarray(up, dtype=np.float64)
     sine = float(z @ u) / (np.linalg.norm(z) * np.linalg.norm(u))
     return float(-np.degrees(np.arcsin(np.clip(sine, -1.0, 1.0))))
+
+
+def frame_lean(frame: ObjectFrame, up: np.ndarray | None) -> float | None:
+    """An object frame's lean (deg, `lean_deg`) where gravity is known and the frame is the tissue's, else None."""
+    return None if up is None or frame.kind != "tissue" else lean_deg(frame.z_axis, up)
 
 
 def beyond_range(lean: float, training: list[float], margin: float = MARGIN_DEG) -> float:
@@ -66,18 +73,37 @@ def lean_report(leans: Mapping[str, tuple[str, float | None]], doubtful: set[str
             "training_recordings": len(train), "margin_deg": margin, "recordings": rows}
 
 
+def unlike_training(lean: float, training_deg: tuple[float, float] | list[float], margin: float = MARGIN_DEG
+                    ) -> str | None:
+    """The words for a tissue that hangs at `lean` (deg) outside the training tissues' (low, high) range by more
+    than `margin`; None within it."""
+    low, high = training_deg
+    beyond = beyond_range(lean, [low, high], margin)
+    if not beyond:
+        return None
+    kind = "stiffer" if beyond < 0 else "softer"
+    return (f"hangs {lean:.1f} deg below level where the training tissues hang {low:.1f}-{high:.1f} deg: likely "
+            f"{kind} than any trained on; its forces may be off by a gain")
+
+
+def lean_metadata(lean: float | None, training_deg: list[float] | None) -> tuple[str | None, dict[str, str]]:
+    """What a force estimate says of its tissue's lean against its model's training tissues (`vfdata predict`,
+    `predict --stream`, `live --record`): the words when it hangs unlike them (None otherwise, or when either is
+    unknown), and the force file's `tissue_lean` metadata (JSON: lean_deg, training_deg, unlike_training)."""
+    note = unlike_training(lean, training_deg) if lean is not None and training_deg is not None else None
+    return note, {"tissue_lean": json.dumps({"lean_deg": None if lean is None else round(lean, 2),
+                                             "training_deg": training_deg, "unlike_training": note})}
+
+
 def lean_warnings(report: dict) -> list[str]:
     """One line per validation or test recording whose tissue hangs outside the training tissues' range."""
     if not report["training_deg"]:
         return []
-    low, high = report["training_deg"]
     lines = []
     for row in report["recordings"]:
-        if row["beyond_deg"]:
-            kind = "stiffer" if row["beyond_deg"] < 0 else "softer"
-            lines.append(f"{row['id']} ({row['split']}) hangs {row['lean_deg']:.1f} deg below level where the training "
-                         f"tissues hang {low:.1f}-{high:.1f} deg: likely {kind} than any trained on; its forces may be "
-                         "off by a gain")
+        words = unlike_training(row["lean_deg"], report["training_deg"], report["margin_deg"])
+        if words:
+            lines.append(f"{row['id']} ({row['split']}) {words}")
     return lines
 
 
@@ -107,5 +133,4 @@ def read_lean(derived: Path, raw: Path) -> float | None:
     if not meta.up_known or meta.object_frame_kind != "tissue" or frame is None:
         return None
     with Recording.open(raw) as rec:
-        up = rig_for(rec, raw).up
-    return None if up is None else lean_deg(frame.z_axis, up)
+        return frame_lean(frame, rig_for(rec, raw).up)

@@ -16,8 +16,9 @@ from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
-from vfdata.recording.derived import read_tracker_name
+from vfdata.recording.derived import read_confidence, read_tracker_name
 from vfdata.split_forces import training_range
+from vfdata.tissue_lean import read_lean
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -126,11 +127,29 @@ class ForceDataModule(L.LightningDataModule):
         entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
         return next((read_tracker_name(e.processed) for e in entries if e.processed.is_file()), None)
 
+    @functools.cached_property
+    def training_lean_deg(self) -> list[float] | None:
+        """[low, high] (deg): how low the training tissues hang below level (`vfdata.tissue_lean`; recordings
+        judged doubtful left out), or None where no training recording has a lean (no gravity, not processed).
+        Read once: every checkpoint saves it, and prediction says when a tissue hangs outside it."""
+        if self.spec.source != "processed":
+            return None
+        entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
+        leans = {}
+        for e in entries:
+            if e.processed.is_file() and e.mcap.is_file() and e.id not in leans:
+                verdict = read_confidence(e.processed)
+                if verdict is None or not verdict.doubtful:
+                    leans[e.id] = read_lean(e.processed, e.mcap)
+        known = [v for v in leans.values() if v is not None]
+        return [round(min(known), 2), round(max(known), 2)] if known else None
+
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
-        # training recordings were tracked (vfmodels.inference.predict.trained_tracker).
-        tracker = self.training_tracker
-        return {"tracker": tracker} if tracker else {}
+        # training recordings were tracked (vfmodels.inference.predict.trained_tracker) and says when
+        # a tissue hangs unlike the training tissues (vfmodels.inference.predict.trained_lean).
+        state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg}
+        return {k: v for k, v in state.items() if v is not None}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         pass  # nothing to restore: the tracker is read by prediction, not by training

@@ -32,8 +32,9 @@ from vfdata.engine import EngineOptions, FrameResult, ImageStages
 from vfdata.errors import VisionForceError
 from vfdata.recon import Prompt
 from vfdata.rig import Rig
+from vfdata.tissue_lean import frame_lean, lean_metadata
 from vfmodels.evaluation.band import unlikeness
-from vfmodels.inference.predict import history, load_force_model, model_device
+from vfmodels.inference.predict import history, load_force_model, model_device, trained_lean
 from vfmodels.training.regressor import ForceRegressor
 
 # The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
@@ -175,6 +176,7 @@ class StreamingForceEstimator:
         was trained on; 0: the whole stream)."""
         self.rig, self.options = rig, rig.stage_options(options or EngineOptions())
         self.regressor, self.spec = load_force_model(ckpt, device)
+        self.training_lean = trained_lean(ckpt)  # how low the training tissues hang (deg; vfdata.tissue_lean)
         self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
         self.window, self.pipelined = history(self.spec, window), pipelined
         self._pool: ThreadPoolExecutor | None = None
@@ -237,6 +239,13 @@ class StreamingForceEstimator:
         reasons = tuple(self.watch.verdict().reasons) if self.watch is not None else ()
         return ForceEstimate(stamp, force, time.perf_counter() - t0, band, self.regressor.beyond_range(force),
                              reasons, float(unlikeness(np.asarray(distance), self.regressor.band_calibration)))
+
+    @property
+    def lean(self) -> tuple[str | None, dict[str, str]]:
+        """What the stream's tissue's lean says against the training tissues' (`vfdata.tissue_lean.lean_metadata`:
+        the words when it hangs unlike them, and the force file's metadata), once its object frame is fixed."""
+        frame = self.engine.frame if self.model is not None else None
+        return lean_metadata(None if frame is None else frame_lean(frame, self.engine.up), self.training_lean)
 
     @property
     def confidence(self) -> Confidence | None:

@@ -79,6 +79,7 @@ class LiveSession:
         self.object_frame: ObjectFrame | None = None  # the stream's (the estimator forgets it at its flush)
         self._arrivals: dict[int, float] = {}  # stamp -> arrival of the next frame (the velocity's)
         self._last: LiveFrame | None = None
+        self.lean: dict[str, str] = {}  # the lean metadata (vfdata.tissue_lean), set at the first estimate
         self.doubtful_since_ns: int | None = None  # the first estimate made while the stream was doubtful
         estimator.on_frame = self._on_frame
 
@@ -120,6 +121,10 @@ class LiveSession:
             arrival = self._arrivals.pop(int(estimate.stamp_ns), None)
             if arrival is not None:
                 self.stats.latency_ms.append(1000.0 * (sent - arrival))
+            if self.stats.estimates == 0:  # the object frame is fixed: say once if the tissue hangs unlike training's
+                note, self.lean = self.estimator.lean
+                if note:
+                    print(f"note: live: the tissue {note}", file=sys.stderr, flush=True)
             self.stats.estimates += 1
             self.stats.forces.append((stamp, force))
             self.stats.bands.append(np.asarray(estimate.band_n, dtype=np.float64))
@@ -160,6 +165,7 @@ class LiveSession:
             meta["object_frame_kind"] = frame.kind
             meta["x_axis"] = x_axis_meaning(meta["object_frame_kind"], self.source.rig.up is not None)
         meta["camera_frame_id"] = self.source.rig.camera_frame_id
+        meta.update(self.lean)
         confidence = self.estimator.confidence
         if confidence is not None:
             meta.update(confidence.metadata())

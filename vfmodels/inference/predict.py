@@ -48,6 +48,7 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
+from vfdata.tissue_lean import lean_metadata, read_lean
 from vfdata.tracking.registry import TRACKERS
 from vfmodels.evaluation.band import band_metrics, describe, unfamiliar, unlikeness
 from vfmodels.evaluation.metrics import force_metrics
@@ -86,6 +87,18 @@ def trained_tracker(ckpt: str | Path) -> str | None:
     if tracker is not None and tracker not in TRACKERS:
         raise InputError(ckpt, f"the checkpoint names an unknown tracker {tracker!r} (known: {', '.join(TRACKERS)})")
     return tracker
+
+
+def trained_lean(ckpt: str | Path) -> list[float] | None:
+    """[low, high] (deg): how low the tissues a checkpoint's model was trained on hang below level (saved by
+    `ForceDataModule`; `vfdata.tissue_lean`), or None when the checkpoint does not say."""
+    state = read_checkpoint(ckpt).get("ForceDataModule") or {}
+    lean = state.get("tissue_lean_deg") if isinstance(state, dict) else None
+    if lean is None:
+        return None
+    if not (isinstance(lean, (list, tuple)) and len(lean) == 2 and all(isinstance(v, (int, float)) for v in lean)):
+        raise InputError(ckpt, f"the checkpoint's tissue_lean_deg {lean!r} is not a range of two angles")
+    return [float(v) for v in lean]
 
 
 def prediction_tracker(ckpt: str | Path, device: str, tracker: str | None = None) -> tuple[str, dict]:
@@ -190,6 +203,7 @@ class PredictResult:
     frames_beyond: int = 0  # frames with a component beyond the training range
     frames_unfamiliar: int = 0  # frames whose input is unlike training's (vfmodels.evaluation.band.unfamiliar)
     confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)
+    lean_note: str | None = None  # the tissue hangs unlike the training tissues (vfdata.tissue_lean), in words
 
 
 def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:
@@ -243,7 +257,8 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     frames_beyond = int((beyond != 0).any(axis=1).sum())
     unlike = unfamiliar(estimate.distance, calibration)
     confidence = tracks.metadata.confidence
-    meta = {**(confidence.metadata() if confidence is not None else {}),
+    lean_note, lean_meta = lean_metadata(read_lean(paths["processed"], src), trained_lean(ckpt))
+    meta = {**(confidence.metadata() if confidence is not None else {}), **lean_meta,
             "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}",
@@ -269,7 +284,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
         if known.sum() > 1 and calibration is not None else None
     return PredictResult(force_mcap, plot, video_path, paths["processed"], len(force), force_fps,
                          tracks.metadata.json("stage_fps", {}), tracks.metadata.up_known, x_axis, metrics,
-                         describe(calibration), coverage, frames_beyond, int(unlike.sum()), confidence)
+                         describe(calibration), coverage, frames_beyond, int(unlike.sum()), confidence, lean_note)
 
 
 def write_overlay_video(rec: Recording, path: Path, tracks: Tracks, force_object_n: np.ndarray,
@@ -309,5 +324,6 @@ def overlay_label(i: int, force_n: np.ndarray, band_n: np.ndarray | None, beyond
 
 
 __all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "history",
-           "load_force_model", "overlay_label", "predict_recording", "prediction_tracker", "trained_tracker",
+           "load_force_model", "overlay_label", "predict_recording", "prediction_tracker", "trained_lean",
+           "trained_tracker",
            "windowed_estimate", "windowed_forces", "write_overlay_video"]

@@ -36,6 +36,7 @@ class StreamResult:
     stage_cpu_ms: dict[str, float] = field(default_factory=dict)  # CPU time of the stage's thread, per frame
     frames_beyond: int = 0  # estimates beyond the training range (as `PredictResult.frames_beyond`)
     frames_unfamiliar: int = 0  # estimates whose input is unlike training's
+    lean_note: str | None = None  # the tissue hangs unlike the training tissues (vfdata.tissue_lean), in words
 
 
 def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: EngineOptions, *,
@@ -66,6 +67,7 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                 estimates.append(result)
         object_frame = estimator.frame
         x_axis = x_axis_meaning(object_frame.kind, rig.up is not None)
+        lean_note, lean_meta = estimator.lean  # before flush, which ends the stream and its object frame
         estimates += estimator.flush()
         estimator.close()
     finally:
@@ -80,11 +82,12 @@ def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: Eng
                                         "band": json.dumps(None if calibration is None else calibration.to_dict()),
                                         "frames_beyond_training": str(beyond),
                                         "frames_unlike_training": str(unfamiliar),
-                                        **confidence.metadata()},
+                                        **confidence.metadata(), **lean_meta},
                          overwrite=overwrite, camera_frame_id=camera_frame,
                          band_n=np.stack([e.band_n for e in estimates]),
                          beyond_n=np.stack([e.beyond_n for e in estimates]),
                          unlike=np.array([e.unlike for e in estimates]))
     return StreamResult(path, n, len(estimates), confidence, np.array(latencies[2:]) * 1000.0,
                         {k: 1000.0 * v / n for k, v in estimator.stage_seconds.items()},
-                        {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}, beyond, unfamiliar)
+                        {k: 1000.0 * v / n for k, v in estimator.stage_cpu_seconds.items()}, beyond, unfamiliar,
+                        lean_note)
