@@ -28,6 +28,7 @@ from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
 from vfdata.recording import Recording
 from vfdata.recording.derived import read_force_band, read_force_estimate, read_force_unlike, read_tracks
 from vfdata.sim import synthesize
+from vfdata.tissue_lean import level
 from vfmodels import ForceRegressor, SetTransformerLSTM
 from vfmodels.evaluation.band import BandCalibration
 from vfmodels.evaluation.metrics import force_metrics
@@ -189,7 +190,7 @@ def test_every_path_gives_the_forces_the_experiment_scored(root, spec, ckpt, sco
             leans[name] = json.loads(rec.metadata_records["visionforce.derived"]["tissue_lean"])
     offline_lean = leans.pop("offline")
     assert offline_lean["training_deg"] == [30.0, 35.0] and offline_lean["lean_deg"] < 29.0
-    assert offline_lean["unlike_training"].startswith(f"hangs {offline_lean['lean_deg']:.1f} deg below level")
+    assert offline_lean["unlike_training"].startswith(f"hangs {level(offline_lean['lean_deg'])} where the training")
     assert "likely stiffer than any trained on" in offline_lean["unlike_training"]
     for name, lean in leans.items():
         assert lean == offline_lean, name

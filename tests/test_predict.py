@@ -606,7 +606,7 @@ def test_predict_says_when_the_tissue_hangs_unlike_the_training_tissues(tmp_path
     recording's tissue is named, in the result and in the force file's metadata; within the range, not."""
     from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
     from vfdata.sim import synthesize
-    from vfdata.tissue_lean import read_lean
+    from vfdata.tissue_lean import read_lean, unlike_training
 
     manifest = synthesize("mini", tmp_path / "data", seed=0, workers=1, progress=False, frames=6)
     recording = convert_raw_folder(manifest.parent / "mini_002", tmp_path / "mini_002.mcap",
@@ -618,8 +618,9 @@ def test_predict_says_when_the_tissue_hangs_unlike_the_training_tissues(tmp_path
     result = predict.predict_recording(recording, ckpt, tmp_path / "out", window=4, video=False, progress=False)
     lean = read_lean(result.processed, recording)
     assert lean is not None and lean < 19.0
-    assert result.lean_note.startswith(f"hangs {lean:.1f} deg below level where the training tissues hang 20.0-25.0 "
-                                       "deg: likely stiffer than any trained on")
+    assert result.lean_note == unlike_training(lean, [20.0, 25.0])
+    assert result.lean_note.endswith("where the training tissues hang 20.0 to 25.0 deg below level: likely stiffer "
+                                     "than any trained on; its forces may be off by a gain")
     with Recording.open(result.force_mcap) as rec:
         said = json.loads(next(m["tissue_lean"] for m in rec.metadata_records.values() if "tissue_lean" in m))
     assert said == {"lean_deg": round(lean, 2), "training_deg": [20.0, 25.0], "unlike_training": result.lean_note}

@@ -31,6 +31,8 @@ from vfdata.rig import rig_for
 # Beyond the training tissues' range by more than this (deg) is worth a note: about the lean's own error
 # (against the simulator's tissue axis: rms 1.3 deg, median 0.9 over the sweep's colon recordings).
 MARGIN_DEG = 1.0
+# Fewer training tissues than this give no range to judge by: one or two are one or two draws of the spread.
+MIN_TRAINING = 3
 
 
 def lean_deg(z_axis: np.ndarray, up: np.ndarray) -> float:
@@ -69,8 +71,9 @@ def lean_report(leans: Mapping[str, tuple[str, float | None]], doubtful: set[str
     rows = [{"id": rid, "split": split, "lean_deg": round(lean, 2),
              "beyond_deg": round(beyond_range(lean, train, margin), 2)}
             for rid, (split, lean) in kept.items() if split != "train" and train]
-    return {"training_deg": [round(min(train), 2), round(max(train), 2)] if train else None,
-            "training_recordings": len(train), "margin_deg": margin, "recordings": rows}
+    ranged = len(train) >= MIN_TRAINING
+    return {"training_deg": [round(min(train), 2), round(max(train), 2)] if ranged else None,
+            "training_recordings": len(train), "margin_deg": margin, "recordings": rows if ranged else []}
 
 
 def unlike_training(lean: float, training_deg: tuple[float, float] | list[float], margin: float = MARGIN_DEG
@@ -82,8 +85,13 @@ def unlike_training(lean: float, training_deg: tuple[float, float] | list[float]
     if not beyond:
         return None
     kind = "stiffer" if beyond < 0 else "softer"
-    return (f"hangs {lean:.1f} deg below level where the training tissues hang {low:.1f}-{high:.1f} deg: likely "
+    return (f"hangs {level(lean)} where the training tissues hang {low:.1f} to {high:.1f} deg below level: likely "
             f"{kind} than any trained on; its forces may be off by a gain")
+
+
+def level(lean: float) -> str:
+    """'4.2 deg below level', '1.3 deg above level'."""
+    return f"{abs(lean):.1f} deg {'below' if lean >= 0 else 'above'} level"
 
 
 def lean_metadata(lean: float | None, training_deg: list[float] | None) -> tuple[str | None, dict[str, str]]:

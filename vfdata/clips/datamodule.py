@@ -18,7 +18,7 @@ from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
 from vfdata.recording.derived import read_confidence, read_tracker_name
 from vfdata.split_forces import training_range
-from vfdata.tissue_lean import read_lean
+from vfdata.tissue_lean import MIN_TRAINING, read_lean
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -130,7 +130,7 @@ class ForceDataModule(L.LightningDataModule):
     @functools.cached_property
     def training_lean_deg(self) -> list[float] | None:
         """[low, high] (deg): how low the training tissues hang below level (`vfdata.tissue_lean`; recordings
-        judged doubtful left out), or None where no training recording has a lean (no gravity, not processed).
+        judged doubtful left out), or None where fewer than `MIN_TRAINING` have one (no gravity, not processed).
         Read once: every checkpoint saves it, and prediction says when a tissue hangs outside it."""
         if self.spec.source != "processed":
             return None
@@ -142,7 +142,7 @@ class ForceDataModule(L.LightningDataModule):
                 if verdict is None or not verdict.doubtful:
                     leans[e.id] = read_lean(e.processed, e.mcap)
         known = [v for v in leans.values() if v is not None]
-        return [round(min(known), 2), round(max(known), 2)] if known else None
+        return [round(min(known), 2), round(max(known), 2)] if len(known) >= MIN_TRAINING else None
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
