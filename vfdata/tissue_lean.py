@@ -7,7 +7,9 @@ error of a force model on a tissue it never saw is mostly a gain that the tissue
 the sweep of fresh `colon` seeds (docs/results.md, "The lean"; `bench/study_droop_gain.py`) the model's log
 gain on a recording rises with its lean against the training tissues' (Spearman +0.45 over 47 validation
 and test recordings), and test recordings that hang outside the training tissues' range by more than
-`MARGIN_DEG` had a median RMSE 1.4x that of the others.
+`MARGIN_DEG` erred more than the others (median RMSE 1.8x on the seeds the margin was set on; fresh seeds:
+docs/results.md). On the `glove` preset's short, stiff finger the droop (1.0-1.5 deg) is under the lean's own
+error and the lean carries no signal.
 
 The lean is measured against the horizontal (gravity from the ECM pose), so it needs `up_known`; what
 matters is the lean relative to the training recordings', so a clamp that is not level but the same for
