@@ -1,6 +1,7 @@
 """train.py through Lightning's CLI: fast_dev_run, then fit / test --ckpt_path best / predict in
 separate CLI runs (the best checkpoint is found from the run folder)."""
 
+import json
 import os
 import sys
 from pathlib import Path
@@ -107,6 +108,11 @@ def test_fit_then_test_and_predict_best(tmp_path, capsys):
     unlike_times, unlike = read_force_unlike(tmp_path / "pred" / "synthetic_000.force.mcap")
     np.testing.assert_array_equal(unlike_times, times)
     assert unlike.shape == (16,)  # NaN here: the synthetic set is too small for an embedding reference
+    from vfdata.recording import Recording
+
+    with Recording.open(tmp_path / "pred" / "synthetic_000.force.mcap") as rec:
+        lean = json.loads(rec.metadata_records["visionforce.derived"]["tissue_lean"])
+    assert lean == {"lean_deg": None, "training_deg": None, "unlike_training": None}  # no gravity in this set
 
 
 def test_best_without_checkpoints_is_a_clear_error(tmp_path, capsys):

@@ -22,6 +22,7 @@ from vfdata.errors import InputError, OutputExistsError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
+from vfdata.tissue_lean import lean_metadata, read_lean
 from vfmodels.evaluation.band import unlikeness
 
 FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread", "distance")
@@ -117,17 +118,25 @@ class ForceEstimateWriter(PredictionCollector):
         recordings = sorted(set(frames["recording"].tolist()))
         targets = self._targets(trainer, recordings)  # every refusal before anything is written
         model = type(pl_module.model).__name__
+        # the training tissues' leans: the datamodule's training split, the one the model was trained on
+        trained = getattr(trainer.datamodule, "training_lean_deg", None)
         for rid in recordings:
             path, entry = targets[rid]
             rows = frames["recording"] == rid
             frame, camera = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan")), layout.LEFT_FRAME
+            lean = None
             if entry is not None and entry.processed.is_file():
                 with DerivedRecording.open(entry.processed) as derived:
                     frame, camera = derived.object_frame, derived.meta.camera_frame_id
+                lean = read_lean(entry.processed, entry.mcap) if entry.mcap.is_file() else None
+            note, lean_meta = lean_metadata(lean, trained)
+            if note:
+                rank_zero_info(f"note: {rid}: the tissue {note}")
             path.parent.mkdir(parents=True, exist_ok=True)
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
                                  {"stage": "train.py predict", "model": model, "recording": rid,
-                                  "source": str(entry.processed if entry else "")}, overwrite=self.overwrite,
+                                  "source": str(entry.processed if entry else ""), **lean_meta},
+                                 overwrite=self.overwrite,
                                  camera_frame_id=camera, band_n=frames["band"][rows],
                                  beyond_n=pl_module.beyond_range(frames["pred"][rows]),
                                  unlike=unlikeness(frames["distance"][rows], pl_module.band_calibration))
