@@ -1,0 +1,101 @@
+"""Which axis doubts are right? Every processed recording's axis fits against the simulator's truth.
+
+`vfdata process` marks an axis doubtful (`vfdata.recon.tissue_frame.chosen_axis`) when the roundest fit
+still leaves the cloud far from a tube (residual over `AXIS_DOUBT_RESIDUAL`), when the two roundest fits
+are about as round and far apart, or when a rival cloud's fit is as round and points more than `RIVAL_DEG`
+away. A doubtful training recording is left out of training, so a false alarm costs a tissue, and the
+tissues trained on are what the error on a new one depends on most (docs/results.md, "The tissues trained
+on"). This reads the diagnostics each derived file keeps (`object_frame_check`: every fit's angle to the
+chosen one and its residual, the rivals) and prints, per recording, the Z error against the simulator's
+clamp axis and against the tissue's own axis (`bench/sweep.py`'s `droop_figures`), which rules fired, and
+the verdict under the rule of today and under `--residual-needs-deg` (the residual counts only when some
+fit points farther than that from the chosen one: four clouds cleaned differently that agree within the
+frame's promise leave the axis where it is, however unround the tissue).
+
+    python bench/study_axis_doubt.py /data/sweep/colon_1*/data/colon.manifest.yaml --tracker klt
+    python bench/study_axis_doubt.py /data/first_frames/*/glove.manifest.yaml --tracker geometry
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from sweep import droop_figures  # noqa: E402
+
+from vfdata.manifest import load_manifest  # noqa: E402
+from vfdata.recon.tissue_frame import AXIS_DOUBT_DEG, AXIS_DOUBT_RESIDUAL, AXIS_TIE  # noqa: E402
+from vfdata.recording.derived import DerivedRecording  # noqa: E402
+from vfmodels.experiment.prepare import derived_path  # noqa: E402
+
+PROMISE_DEG = 10.0
+
+
+def recording_row(entry, label: str, tracker: str, needs_deg: float) -> dict | None:
+    path = derived_path(entry, tracker)
+    if not path.is_file() or not (entry.raw / "ground_truth").is_dir():
+        return None
+    with DerivedRecording.open(path) as derived:
+        check = derived.meta.json("object_frame_check") or {}
+        z_axis = derived.object_frame.z_axis
+        verdict = derived.meta.confidence
+    fits = check.get("axis_fits", {})
+    if not fits:
+        return None
+    best = fits[check["axis_from"]]
+    spread = max(f["deg"] for f in fits.values())
+    residual = best["residual"] > AXIS_DOUBT_RESIDUAL
+    rivals = bool(check.get("axis_rivals"))
+    # the tie of the two roundest (the whole and the metal-free clouds are the candidates that matter here)
+    tie = any(f["residual"] <= AXIS_TIE * best["residual"] and f["deg"] > AXIS_DOUBT_DEG
+              for name, f in fits.items() if name in ("cloud", "clean") and name != check["axis_from"])
+    other = [r for r in (verdict.reasons if verdict else []) if r != "axis"]
+    now = bool(check.get("axis_doubtful")) or bool(other)
+    proposed = (residual and spread > needs_deg) or rivals or tie or bool(other)
+    truth = droop_figures(entry.raw, z_axis)
+    true_z = np.asarray(json.loads((entry.raw / "ground_truth" / "object_frame.json").read_text())["rotation"])[:, 2]
+    z_err = float(np.degrees(np.arccos(np.clip(z_axis @ true_z, -1, 1))))
+    return {"id": f"{label}/{entry.id}", "split": entry.split, "z_err": z_err,
+            "tissue_err": truth["tissue_err_deg"], "residual": best["residual"], "spread": spread,
+            "rules": [n for n, on in (("residual", residual), ("rival", rivals), ("tie", tie)) if on] + other,
+            "now": now, "proposed": proposed}
+
+
+def summary(rows: list[dict], key: str, label: str) -> str:
+    far = [r for r in rows if r["z_err"] > PROMISE_DEG]
+    near = [r for r in rows if r["z_err"] <= PROMISE_DEG]
+    return (f"{label}: {sum(r[key] for r in rows)} flagged of {len(rows)}; beyond 10 deg {len(far)}, of them "
+            f"flagged {sum(r[key] for r in far)}; within 10 deg {len(near)}, of them flagged (false alarms) "
+            f"{sum(r[key] for r in near)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("manifests", nargs="+", type=Path)
+    parser.add_argument("--tracker", default="klt")
+    parser.add_argument("--residual-needs-deg", type=float, default=PROMISE_DEG)
+    args = parser.parse_args()
+    rows = []
+    for manifest in args.manifests:
+        label = (manifest.parent.parent if manifest.parent.name == "data" else manifest.parent).name
+        for entry in load_manifest(manifest).entries:
+            row = recording_row(entry, label, args.tracker, args.residual_needs_deg)
+            if row is not None:
+                rows.append(row)
+                if row["now"] or row["proposed"] or row["z_err"] > PROMISE_DEG:
+                    print(f"{row['id']:>28} {row['split']:>5}  Z {row['z_err']:5.1f} deg "
+                          f"(tissue {row['tissue_err']:5.1f})  residual {row['residual']:.3f}  "
+                          f"fits within {row['spread']:5.1f} deg  rules {','.join(row['rules']) or '-'}  "
+                          f"now {'DOUBT' if row['now'] else 'ok'}  proposed {'DOUBT' if row['proposed'] else 'ok'}")
+    print(summary(rows, "now", "today's rule"))
+    print(summary(rows, "proposed", f"residual only beyond {args.residual_needs_deg:g} deg of spread"))
+
+
+if __name__ == "__main__":
+    main()
