@@ -8,9 +8,10 @@ tissues trained on are what the error on a new one depends on most (docs/results
 on"). This reads the diagnostics each derived file keeps (`object_frame_check`: every fit's angle to the
 chosen one and its residual, the rivals) and prints, per recording, the Z error against the simulator's
 clamp axis and against the tissue's own axis (`bench/sweep.py`'s `droop_figures`), which rules fired, and
-the verdict under the rule of today and under `--residual-needs-deg` (the residual counts only when some
-fit points farther than that from the chosen one: four clouds cleaned differently that agree within the
-frame's promise leave the axis where it is, however unround the tissue).
+the verdict the file was written with (`stored`) and the one this code's rule gives on the same fits
+(`code`): since 2026-12-06 a residual up to `AXIS_AGREE_WAIVER` times the threshold is waived when
+`AXIS_AGREE_FITS` fits or more, on clouds cleaned differently, all point within `RIVAL_DEG` of the chosen
+one (the contamination the residual looks for would turn one of them).
 
     python bench/study_axis_doubt.py /data/sweep/colon_1*/data/colon.manifest.yaml --tracker klt
     python bench/study_axis_doubt.py /data/first_frames/*/glove.manifest.yaml --tracker geometry
@@ -30,14 +31,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep import droop_figures  # noqa: E402
 
 from vfdata.manifest import load_manifest  # noqa: E402
-from vfdata.recon.tissue_frame import AXIS_DOUBT_DEG, AXIS_DOUBT_RESIDUAL, AXIS_TIE  # noqa: E402
+from vfdata.recon.tissue_frame import (  # noqa: E402
+    AXIS_AGREE_FITS,
+    AXIS_AGREE_WAIVER,
+    AXIS_DOUBT_DEG,
+    AXIS_DOUBT_RESIDUAL,
+    AXIS_TIE,
+    RIVAL_DEG,
+)
 from vfdata.recording.derived import DerivedRecording  # noqa: E402
 from vfmodels.experiment.prepare import derived_path  # noqa: E402
 
 PROMISE_DEG = 10.0
 
 
-def recording_row(entry, label: str, tracker: str, needs_deg: float) -> dict | None:
+def recording_row(entry, label: str, tracker: str) -> dict | None:
     path = derived_path(entry, tracker)
     if not path.is_file() or not (entry.raw / "ground_truth").is_dir():
         return None
@@ -51,13 +59,15 @@ def recording_row(entry, label: str, tracker: str, needs_deg: float) -> dict | N
     best = fits[check["axis_from"]]
     spread = max(f["deg"] for f in fits.values())
     residual = best["residual"] > AXIS_DOUBT_RESIDUAL
+    agreed = len(fits) >= AXIS_AGREE_FITS and spread <= RIVAL_DEG
+    waived = residual and agreed and best["residual"] <= AXIS_AGREE_WAIVER * AXIS_DOUBT_RESIDUAL
     rivals = bool(check.get("axis_rivals"))
     # the tie of the two roundest (the whole and the metal-free clouds are the candidates that matter here)
     tie = any(f["residual"] <= AXIS_TIE * best["residual"] and f["deg"] > AXIS_DOUBT_DEG
               for name, f in fits.items() if name in ("cloud", "clean") and name != check["axis_from"])
     other = [r for r in (verdict.reasons if verdict else []) if r != "axis"]
     now = bool(check.get("axis_doubtful")) or bool(other)
-    proposed = (residual and spread > needs_deg) or rivals or tie or bool(other)
+    proposed = (residual and not waived) or rivals or tie or bool(other)
     truth = droop_figures(entry.raw, z_axis)
     true_z = np.asarray(json.loads((entry.raw / "ground_truth" / "object_frame.json").read_text())["rotation"])[:, 2]
     z_err = float(np.degrees(np.arccos(np.clip(z_axis @ true_z, -1, 1))))
@@ -79,22 +89,21 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("manifests", nargs="+", type=Path)
     parser.add_argument("--tracker", default="klt")
-    parser.add_argument("--residual-needs-deg", type=float, default=PROMISE_DEG)
     args = parser.parse_args()
     rows = []
     for manifest in args.manifests:
         label = (manifest.parent.parent if manifest.parent.name == "data" else manifest.parent).name
         for entry in load_manifest(manifest).entries:
-            row = recording_row(entry, label, args.tracker, args.residual_needs_deg)
+            row = recording_row(entry, label, args.tracker)
             if row is not None:
                 rows.append(row)
                 if row["now"] or row["proposed"] or row["z_err"] > PROMISE_DEG:
                     print(f"{row['id']:>28} {row['split']:>5}  Z {row['z_err']:5.1f} deg "
                           f"(tissue {row['tissue_err']:5.1f})  residual {row['residual']:.3f}  "
                           f"fits within {row['spread']:5.1f} deg  rules {','.join(row['rules']) or '-'}  "
-                          f"now {'DOUBT' if row['now'] else 'ok'}  proposed {'DOUBT' if row['proposed'] else 'ok'}")
-    print(summary(rows, "now", "today's rule"))
-    print(summary(rows, "proposed", f"residual only beyond {args.residual_needs_deg:g} deg of spread"))
+                          f"stored {'DOUBT' if row['now'] else 'ok'}  code {'DOUBT' if row['proposed'] else 'ok'}")
+    print(summary(rows, "now", "as stored"))
+    print(summary(rows, "proposed", "this code's rule"))
 
 
 if __name__ == "__main__":
