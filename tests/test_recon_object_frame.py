@@ -225,8 +225,9 @@ def test_a_cloud_too_small_to_trust_is_not_fitted_and_a_flat_one_is_doubtful():
 
 def test_a_tube_a_little_less_round_is_not_doubtful_when_every_fit_agrees():
     """On the colon sweeps four frames were doubtful by the residual alone (0.103-0.119) with their four fits
-    within 5 degrees of each other, and 2.4-6.7 degrees from the truth: each cost a training or validation tissue. A noisier
-    tube (residual 0.10-0.15) whose fits agree is not doubtful; fitted alone, or rougher still, it is."""
+    within 5 degrees of each other, and 2.4-6.7 degrees from the truth: each cost a training or validation
+    tissue. A noisier tube (residual 0.10-0.15) whose fits agree is not doubtful; fitted alone, or rougher
+    still, it is."""
     from vfdata.recon.tissue_frame import AXIS_DOUBT_RESIDUAL, chosen_axis
 
     rng = np.random.default_rng(2)

@@ -131,7 +131,7 @@ class ForceDataModule(L.LightningDataModule):
     def training_lean_deg(self) -> list[float] | None:
         """[low, high] (deg): how low the training tissues hang below level (`vfdata.tissue_lean`; recordings
         judged doubtful left out), or None where fewer than `MIN_TRAINING` have one (no gravity, not processed).
-        Read once: every checkpoint saves it, and prediction says when a tissue hangs outside it."""
+        Read once: every checkpoint saves it, and prediction records whether a tissue hangs outside it."""
         if self.spec.source != "processed":
             return None
         entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
@@ -146,8 +146,8 @@ class ForceDataModule(L.LightningDataModule):
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
-        # training recordings were tracked (vfmodels.inference.predict.trained_tracker) and says when
-        # a tissue hangs unlike the training tissues (vfmodels.inference.predict.trained_lean).
+        # training recordings were tracked (vfmodels.inference.predict.trained_tracker) and records how
+        # the tissue hangs against the training tissues (vfmodels.inference.predict.trained_lean).
         state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg}
         return {k: v for k, v in state.items() if v is not None}
 

@@ -89,8 +89,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"{result.frames} frames; object frame X axis: {result.x_axis}")
     if result.confidence is not None and result.confidence.doubtful:
         print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)
-    if result.lean_note:
-        print(f"note: {args.recording}: the tissue {result.lean_note}", file=sys.stderr)
     if result.metrics is not None:
         m = result.metrics
         print(f"RMSE against the recording's force sensor: {m['rmse']:.3f} N (Fx {m['rmse_fx']:.3f}, Fy "
@@ -121,8 +119,6 @@ def _stream(args: argparse.Namespace, settings: dict) -> int:
                               overwrite=args.overwrite, progress=not args.quiet)
     if result.confidence.doubtful:
         print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)
-    if result.lean_note:
-        print(f"note: {args.recording}: the tissue {result.lean_note}", file=sys.stderr)
     latency_ms, delay = result.latency_ms, 2 if args.pipelined else 1
     print(f"{result.estimates} estimates from {result.frames} frames; per-frame latency (push) median "
           f"{np.median(latency_ms):.1f} ms, p95 {np.percentile(latency_ms, 95):.1f} ms, "

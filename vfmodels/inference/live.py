@@ -242,8 +242,8 @@ class StreamingForceEstimator:
 
     @property
     def lean(self) -> tuple[str | None, dict[str, str]]:
-        """What the stream's tissue's lean says against the training tissues' (`vfdata.tissue_lean.lean_metadata`:
-        the words when it hangs unlike them, and the force file's metadata), once its object frame is fixed."""
+        """The stream's tissue's lean against the training tissues' (`vfdata.tissue_lean.lean_metadata`: the words
+        when it hangs outside their range, and the force file's metadata), once its object frame is fixed."""
         frame = self.engine.frame if self.model is not None else None
         return lean_metadata(None if frame is None else frame_lean(frame, self.engine.up), self.training_lean)
 

@@ -121,10 +121,8 @@ class LiveSession:
             arrival = self._arrivals.pop(int(estimate.stamp_ns), None)
             if arrival is not None:
                 self.stats.latency_ms.append(1000.0 * (sent - arrival))
-            if self.stats.estimates == 0:  # the object frame is fixed: say once if the tissue hangs unlike training's
-                note, self.lean = self.estimator.lean
-                if note:
-                    print(f"note: live: the tissue {note}", file=sys.stderr, flush=True)
+            if self.stats.estimates == 0:  # the object frame is fixed: its lean is known (recorded, not said)
+                self.lean = self.estimator.lean[1]
             self.stats.estimates += 1
             self.stats.forces.append((stamp, force))
             self.stats.bands.append(np.asarray(estimate.band_n, dtype=np.float64))

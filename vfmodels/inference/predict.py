@@ -203,7 +203,7 @@ class PredictResult:
     frames_beyond: int = 0  # frames with a component beyond the training range
     frames_unfamiliar: int = 0  # frames whose input is unlike training's (vfmodels.evaluation.band.unfamiliar)
     confidence: Confidence | None = None  # the processed recording's verdict (vfdata.confidence)
-    lean_note: str | None = None  # the tissue hangs unlike the training tissues (vfdata.tissue_lean), in words
+    lean_note: str | None = None  # the tissue hangs outside the training tissues (vfdata.tissue_lean), in words
 
 
 def output_paths(src: Path, out_dir: Path, video: bool) -> dict[str, Path]:

@@ -36,7 +36,7 @@ class StreamResult:
     stage_cpu_ms: dict[str, float] = field(default_factory=dict)  # CPU time of the stage's thread, per frame
     frames_beyond: int = 0  # estimates beyond the training range (as `PredictResult.frames_beyond`)
     frames_unfamiliar: int = 0  # estimates whose input is unlike training's
-    lean_note: str | None = None  # the tissue hangs unlike the training tissues (vfdata.tissue_lean), in words
+    lean_note: str | None = None  # the tissue hangs outside the training tissues (vfdata.tissue_lean), in words
 
 
 def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: EngineOptions, *,

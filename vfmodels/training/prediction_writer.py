@@ -118,7 +118,7 @@ class ForceEstimateWriter(PredictionCollector):
         recordings = sorted(set(frames["recording"].tolist()))
         targets = self._targets(trainer, recordings)  # every refusal before anything is written
         model = type(pl_module.model).__name__
-        # the training tissues' leans: the datamodule's training split, the one the model was trained on
+        # the training tissues' leans, recorded beside the force: the training split, the model's
         trained = getattr(trainer.datamodule, "training_lean_deg", None)
         for rid in recordings:
             path, entry = targets[rid]
@@ -129,9 +129,7 @@ class ForceEstimateWriter(PredictionCollector):
                 with DerivedRecording.open(entry.processed) as derived:
                     frame, camera = derived.object_frame, derived.meta.camera_frame_id
                 lean = read_lean(entry.processed, entry.mcap) if entry.mcap.is_file() else None
-            note, lean_meta = lean_metadata(lean, trained)
-            if note:
-                rank_zero_info(f"note: {rid}: the tissue {note}")
+            lean_meta = lean_metadata(lean, trained)[1]
             path.parent.mkdir(parents=True, exist_ok=True)
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
                                  {"stage": "train.py predict", "model": model, "recording": rid,
