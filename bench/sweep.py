@@ -4,7 +4,8 @@ For each preset and seed: `vfdata synth` with test orientations drawn at random 
 the seed), `vfdata experiment` with the variants (default `visionforce` and `ridge`, one training seed,
 the documented settings), then per seed and variant the pooled R^2 and RMSE of the test split, the worst
 test view's RMSE against the validation RMSE, and per recording the object frame against the simulator's
-truth (Z error, origin offset, whether the recording was judged doubtful) and the first frame's mask IoU.
+truth (Z error, origin offset, whether the recording was judged doubtful; the Z error against the tissue's
+own axis and the tissue's droop from the clamp, `droop_figures`) and the first frame's mask IoU.
 Prints the tables, then the median and the worst seed, and writes OUT/sweep.json, OUT/sweep.md and
 OUT/claims.json (issue 32's targets: measured, wanted, met; as the experiment's claims.json).
 Every step resumes: a finished dataset or run is kept.
