@@ -9,9 +9,9 @@ on"). This reads the diagnostics each derived file keeps (`object_frame_check`: 
 chosen one and its residual, the rivals) and prints, per recording, the Z error against the simulator's
 clamp axis and against the tissue's own axis (`bench/sweep.py`'s `droop_figures`), which rules fired, and
 the verdict the file was written with (`stored`) and the one this code's rule gives on the same fits
-(`code`): since 2026-12-06 a residual up to `AXIS_AGREE_WAIVER` times the threshold is waived when
-`AXIS_AGREE_FITS` fits or more, on clouds cleaned differently, all point within `RIVAL_DEG` of the chosen
-one (the contamination the residual looks for would turn one of them).
+(`code`, the residual judged by `tissue_frame.residual_doubtful`): since 2026-12-06 a residual up to
+`AXIS_AGREE_WAIVER` times the threshold is waived when `AXIS_AGREE_FITS` fits or more, on clouds cleaned
+differently, all point within `RIVAL_DEG` of the chosen one.
 
     python bench/study_axis_doubt.py /data/sweep/colon_1*/data/colon.manifest.yaml --tracker klt
     python bench/study_axis_doubt.py /data/first_frames/*/glove.manifest.yaml --tracker geometry
@@ -32,12 +32,10 @@ from sweep import droop_figures  # noqa: E402
 
 from vfdata.manifest import load_manifest  # noqa: E402
 from vfdata.recon.tissue_frame import (  # noqa: E402
-    AXIS_AGREE_FITS,
-    AXIS_AGREE_WAIVER,
     AXIS_DOUBT_DEG,
     AXIS_DOUBT_RESIDUAL,
     AXIS_TIE,
-    RIVAL_DEG,
+    residual_doubtful,
 )
 from vfdata.recording.derived import DerivedRecording  # noqa: E402
 from vfmodels.experiment.prepare import derived_path  # noqa: E402
@@ -59,8 +57,7 @@ def recording_row(entry, label: str, tracker: str) -> dict | None:
     best = fits[check["axis_from"]]
     spread = max(f["deg"] for f in fits.values())
     residual = best["residual"] > AXIS_DOUBT_RESIDUAL
-    agreed = len(fits) >= AXIS_AGREE_FITS and spread <= RIVAL_DEG
-    waived = residual and agreed and best["residual"] <= AXIS_AGREE_WAIVER * AXIS_DOUBT_RESIDUAL
+    waived = residual and not residual_doubtful(best["residual"], [f["deg"] for f in fits.values()])
     rivals = bool(check.get("axis_rivals"))
     # the tie of the two roundest (the whole and the metal-free clouds are the candidates that matter here)
     tie = any(f["residual"] <= AXIS_TIE * best["residual"] and f["deg"] > AXIS_DOUBT_DEG

@@ -78,10 +78,9 @@ def seed_study(folder: Path, ridge: bool) -> dict:
             gains.append((str(rec), float(np.log((p[ok] * t[ok]).sum() / (t[ok] ** 2).sum())),
                           float(np.log(lean[str(rec)]) - reference)))
 
-    out = {"lean_deg": lean, "gains": gains, "rmse": {}, "note": note_rows(folder, experiment, lean)}
+    out = {"lean_deg": lean, "gains": gains, "rmse": {}, "note": note_rows(folder)}
     for mode in ("plain", "scaled") if ridge else ():
         factor = {i: (lean[i] if mode == "scaled" else 1.0) for i in lean}
-
         labelled = {i: replace(decoded[i], force_n=decoded[i].force_n * np.float32(factor[i])) for i in lean}
         model = RidgeForceModel(mirror=spec.mirror_augment, rotate=spec.rotate_augment)
         model.fit([labelled[i] for i in split["train"]], [labelled[i] for i in split["val"]])
@@ -91,7 +90,7 @@ def seed_study(folder: Path, ridge: bool) -> dict:
     return out
 
 
-def note_rows(folder: Path, experiment, lean: dict[str, float]) -> list[dict]:
+def note_rows(folder: Path) -> list[dict]:
     """Per test view: its tissue's distance outside the training range (deg, no margin), whether the note
     names it (beyond `MARGIN_DEG`), and the view's RMSE over its validation's (the sweep's run)."""
     doubtful = {d["id"] for d in json.loads((folder / "results" / "doubtful.json").read_text())}

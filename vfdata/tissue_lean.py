@@ -28,7 +28,7 @@ import numpy as np
 
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import Recording
-from vfdata.recording.derived import DerivedRecording
+from vfdata.recording.derived import DerivedMeta, DerivedRecording
 from vfdata.rig import rig_for
 
 # Beyond the training tissues' range by more than this (deg) is worth a note: about the lean's own error
@@ -71,12 +71,14 @@ def lean_report(leans: Mapping[str, tuple[str, float | None]], doubtful: set[str
     kept = {rid: (split, lean) for rid, (split, lean) in leans.items()
             if rid not in doubtful and lean is not None and math.isfinite(lean)}
     train = [lean for split, lean in kept.values() if split == "train"]
-    rows = [{"id": rid, "split": split, "lean_deg": round(lean, 2),
-             "beyond_deg": round(beyond_range(lean, train, margin), 2)}
-            for rid, (split, lean) in kept.items() if split != "train" and train]
-    ranged = len(train) >= MIN_TRAINING
-    return {"training_deg": [round(min(train), 2), round(max(train), 2)] if ranged else None,
-            "training_recordings": len(train), "margin_deg": margin, "recordings": rows if ranged else []}
+    report = {"training_deg": None, "training_recordings": len(train), "margin_deg": margin, "recordings": []}
+    if len(train) < MIN_TRAINING:
+        return report
+    report["training_deg"] = [round(min(train), 2), round(max(train), 2)]
+    report["recordings"] = [{"id": rid, "split": split, "lean_deg": round(lean, 2),
+                             "beyond_deg": round(beyond_range(lean, train, margin), 2)}
+                            for rid, (split, lean) in kept.items() if split != "train"]
+    return report
 
 
 def unlike_training(lean: float, training_deg: tuple[float, float] | list[float], margin: float = MARGIN_DEG
@@ -133,11 +135,16 @@ def lean_markdown(report: dict) -> str:
 
 
 def read_lean(derived: Path, raw: Path) -> float | None:
-    """A processed recording's lean (deg): as `vfdata process` wrote it, or, in files from before it did, from
-    their object frame and the raw recording's gravity (`raw`, its MCAP). None where gravity is unknown or the
-    frame is not the tissue's."""
+    """A processed recording's lean (deg), from its derived file (`recording_lean`)."""
     with DerivedRecording.open(derived) as d:
         meta, frame = d.meta, d.object_frame
+    return recording_lean(meta, frame, raw)
+
+
+def recording_lean(meta: DerivedMeta, frame: ObjectFrame | None, raw: Path) -> float | None:
+    """A processed recording's lean (deg) from its derived metadata: as `vfdata process` wrote it, or, in files
+    from before it did, from their object frame and the raw recording's gravity (`raw`, its MCAP). None where
+    gravity is unknown or the frame is not the tissue's."""
     if meta.tissue_lean_deg is not None:
         return float(meta.tissue_lean_deg)
     if not meta.up_known or meta.object_frame_kind != "tissue" or frame is None:

@@ -16,9 +16,9 @@ from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
-from vfdata.recording.derived import read_confidence, read_tracker_name
+from vfdata.recording.derived import DerivedRecording, read_tracker_name
 from vfdata.split_forces import training_range
-from vfdata.tissue_lean import MIN_TRAINING, read_lean
+from vfdata.tissue_lean import lean_report, recording_lean
 
 DEFAULT_SPEC = ClipSpec()
 
@@ -129,20 +129,21 @@ class ForceDataModule(L.LightningDataModule):
 
     @functools.cached_property
     def training_lean_deg(self) -> list[float] | None:
-        """[low, high] (deg): how low the training tissues hang below level (`vfdata.tissue_lean`; recordings
-        judged doubtful left out), or None where fewer than `MIN_TRAINING` have one (no gravity, not processed).
+        """[low, high] (deg): how low the training tissues hang below level (`vfdata.tissue_lean.lean_report`:
+        recordings judged doubtful left out; None with fewer than three leans: no gravity, not processed).
         Read once: every checkpoint saves it, and prediction records whether a tissue hangs outside it."""
         if self.spec.source != "processed":
             return None
         entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
-        leans = {}
+        leans, doubtful = {}, set()
         for e in entries:
             if e.processed.is_file() and e.mcap.is_file() and e.id not in leans:
-                verdict = read_confidence(e.processed)
-                if verdict is None or not verdict.doubtful:
-                    leans[e.id] = read_lean(e.processed, e.mcap)
-        known = [v for v in leans.values() if v is not None]
-        return [round(min(known), 2), round(max(known), 2)] if len(known) >= MIN_TRAINING else None
+                with DerivedRecording.open(e.processed) as derived:
+                    meta, frame = derived.meta, derived.object_frame
+                leans[e.id] = ("train", recording_lean(meta, frame, e.mcap))
+                if meta.confidence is not None and meta.confidence.doubtful:
+                    doubtful.add(e.id)
+        return lean_report(leans, doubtful)["training_deg"]
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the

@@ -120,11 +120,7 @@ def chosen_axis(clouds: dict[str, np.ndarray]) -> tuple[TubeAxis, dict]:
     best = ranked[0]
     chosen = fits[best]
     turned = {name: angle_deg(chosen.direction, fit.direction) for name, fit in fits.items()}
-    # A tissue a little less round than a tube (a squashed colon) is waived when every fit, on clouds cleaned
-    # differently, agrees with the chosen one within the frame's promise: the contamination the residual looks
-    # for would turn one of them. One fit alone, or a cloud far from any tube (the bed), is still doubtful.
-    agreed = len(fits) >= AXIS_AGREE_FITS and max(turned.values()) <= RIVAL_DEG
-    doubtful = residual[best] > AXIS_DOUBT_RESIDUAL * (AXIS_AGREE_WAIVER if agreed else 1.0)
+    doubtful = residual_doubtful(residual[best], list(turned.values()))
     if len(ranked) > 1:
         second = ranked[1]
         doubtful |= residual[second] <= AXIS_TIE * residual[best] and turned[second] > AXIS_DOUBT_DEG
@@ -132,6 +128,16 @@ def chosen_axis(clouds: dict[str, np.ndarray]) -> tuple[TubeAxis, dict]:
     return chosen, {"axis_from": best, "axis_doubtful": bool(doubtful or rivals), "axis_rivals": rivals,
                     "axis_fits": {name: {"deg": round(turned[name], 2), "residual": round(residual[name], 4),
                                          "own": round(own[name], 4)} for name in fits}}
+
+
+def residual_doubtful(residual: float, turned_deg: list[float]) -> bool:
+    """Whether the chosen fit's tube `residual` makes the axis doubtful, given every fit's angle to the chosen
+    one (`turned_deg`, the chosen's own 0 included). A tissue a little less round than a tube (a squashed
+    colon) is waived when `AXIS_AGREE_FITS` fits or more, on clouds cleaned differently, agree within the
+    frame's promise: the contamination the residual looks for would turn one of them. One fit alone, or a
+    cloud far from any tube (the bed), is still doubtful."""
+    agreed = len(turned_deg) >= AXIS_AGREE_FITS and max(turned_deg) <= RIVAL_DEG
+    return residual > AXIS_DOUBT_RESIDUAL * (AXIS_AGREE_WAIVER if agreed else 1.0)
 
 
 def end_decision(axis: TubeAxis, image_bgr: np.ndarray, mask: np.ndarray, cloud_mm: np.ndarray,

@@ -48,7 +48,7 @@ from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
-from vfdata.tissue_lean import lean_metadata, read_lean
+from vfdata.tissue_lean import lean_metadata, recording_lean
 from vfdata.tracking.registry import TRACKERS
 from vfmodels.evaluation.band import band_metrics, describe, unfamiliar, unlikeness
 from vfmodels.evaluation.metrics import force_metrics
@@ -257,7 +257,7 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     frames_beyond = int((beyond != 0).any(axis=1).sum())
     unlike = unfamiliar(estimate.distance, calibration)
     confidence = tracks.metadata.confidence
-    lean_note, lean_meta = lean_metadata(read_lean(paths["processed"], src), trained_lean(ckpt))
+    lean_note, lean_meta = lean_metadata(recording_lean(tracks.metadata, tracks.frame, src), trained_lean(ckpt))
     meta = {**(confidence.metadata() if confidence is not None else {}), **lean_meta,
             "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
             "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),

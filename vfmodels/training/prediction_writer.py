@@ -22,7 +22,7 @@ from vfdata.errors import InputError, OutputExistsError
 from vfdata.recon.object_frame import ObjectFrame
 from vfdata.recording import layout
 from vfdata.recording.derived import DerivedRecording, write_force_estimate
-from vfdata.tissue_lean import lean_metadata, read_lean
+from vfdata.tissue_lean import lean_metadata, recording_lean
 from vfmodels.evaluation.band import unlikeness
 
 FIELDS = ("recording", "orientation_deg", "frame_time_ns", "position", "pred", "true", "band", "spread", "distance")
@@ -128,7 +128,7 @@ class ForceEstimateWriter(PredictionCollector):
             if entry is not None and entry.processed.is_file():
                 with DerivedRecording.open(entry.processed) as derived:
                     frame, camera = derived.object_frame, derived.meta.camera_frame_id
-                lean = read_lean(entry.processed, entry.mcap) if entry.mcap.is_file() else None
+                    lean = recording_lean(derived.meta, frame, entry.mcap) if entry.mcap.is_file() else None
             lean_meta = lean_metadata(lean, trained)[1]
             path.parent.mkdir(parents=True, exist_ok=True)
             write_force_estimate(path, frames["frame_time_ns"][rows], frames["pred"][rows], frame,
