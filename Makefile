@@ -50,8 +50,10 @@ setup: $(STAMP)
 quickstart: $(STAMP)
 	$(BIN)/vfdata quickstart data/quickstart
 
+# One worker per core, at most 4 (pytest-xdist): 264 s instead of 349 s on the 2-core machine (2026-12-07).
+# Each worker holds torch (up to 2.1 GB); the slow tier stays in one process (DDP and Ray open their own).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4
 
 # The slow tier: whole pipelines on simulated and real recordings, DDP, Ray, every config.
 test-slow: $(STAMP)
