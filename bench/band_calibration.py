@@ -58,9 +58,8 @@ def rescore(run: Path, kept: Path) -> None:
 
     from vfdata.clips.datamodule import ForceDataModule, spec_from_checkpoint_hparams
     from vfmodels.experiment.runner import test_predictions
-    from vfmodels.training.checkpoint import read_checkpoint
+    from vfmodels.training.checkpoint import best_checkpoint, read_checkpoint
     from vfmodels.training.regressor import REFERENCE_CLIPS, ForceRegressor
-    from vfmodels.training.train import best_checkpoint
 
     torch.set_num_threads(1)
     summary = json.loads((run / "metrics.json").read_text())

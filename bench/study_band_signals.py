@@ -30,9 +30,8 @@ from vfdata.clips.datamodule import ForceDataModule, spec_from_checkpoint_hparam
 from vfdata.clips.tokens import latest_clip_frames
 from vfmodels.evaluation.band import band_metrics
 from vfmodels.evaluation.metrics import force_metrics
-from vfmodels.training.checkpoint import read_checkpoint
+from vfmodels.training.checkpoint import best_checkpoint, read_checkpoint
 from vfmodels.training.regressor import ForceRegressor
-from vfmodels.training.train import best_checkpoint
 
 SIGNALS = ("none", "mirror", "turns4", "embed", "points", "force", "mirror+force", "embed+force", "turns4+force")
 

@@ -27,6 +27,7 @@ from vfdata.recording.derived import (
 from vfmodels import ForceRegressor, SetTransformerLSTM
 from vfmodels.inference import overlay, predict
 from vfmodels.inference.live import StreamingForceEstimator, StreamingForceModel
+from vfmodels.inference.trained_model import TrainedModel
 from vfmodels.reports.figures import plot_force_series
 
 IDENTITY = ObjectFrame(np.eye(3), np.zeros(3), False, float("nan"))
@@ -238,10 +239,10 @@ def test_a_model_that_cannot_run_frame_by_frame_is_refused_in_one_line(tmp_path,
             return tokens.mean(dim=2)[..., :3]
 
     ckpt = _save_checkpoint(_regressor(), tmp_path / "c.ckpt", {"spec": {"input": "tracks"}})
-    assert predict.load_force_model(ckpt)[0].causal
-    monkeypatch.setattr(ForceRegressor, "load", classmethod(lambda cls, path: ForceRegressor(WholeClip())))
+    assert TrainedModel.load(ckpt).regressor.causal
+    monkeypatch.setattr(ForceRegressor, "load", classmethod(lambda cls, path, checkpoint=None: ForceRegressor(WholeClip())))
     with pytest.raises(InputError, match="c.ckpt: WholeClip does not run frame by frame"):
-        predict.load_force_model(ckpt)
+        TrainedModel.load(ckpt)
 
 
 def test_canonical_side_mirrors_the_tracks_in_and_the_force_back_out():
@@ -335,7 +336,7 @@ def _save_checkpoint(reg: ForceRegressor, path, datamodule_hp: dict | None = Non
 
 def test_canonical_side_is_read_from_the_checkpoint_and_needs_the_object_frame(tmp_path):
     ckpt = _save_checkpoint(_regressor(), tmp_path / "c.ckpt", {"spec": {"canonical_side": True, "frame": "object"}})
-    assert predict.load_force_model(ckpt)[1].canonical_side is True
+    assert TrainedModel.load(ckpt).spec.canonical_side is True
     with pytest.raises(VisionForceError, match="object frame"):
         ClipSpec(frame="camera", canonical_side=True)
 
@@ -353,22 +354,23 @@ def test_predict_step_turns_a_mirrored_clip_back():
     torch.testing.assert_close(out[1], raw[1] * torch.tensor([1.0, -1.0, 1.0]))
 
 
-def test_load_force_model_reads_the_clip_spec_and_checks_features(tmp_path):
+def test_a_trained_model_reads_the_clip_spec_and_checks_features(tmp_path):
     reg = _regressor()
     ckpt = _save_checkpoint(reg, tmp_path / "m.ckpt", {"spec": {"frame": "camera", "fps": 25.0}})
-    loaded, spec = predict.load_force_model(ckpt)
+    model = TrainedModel.load(ckpt)
+    loaded, spec = model.regressor, model.spec
     assert spec.frame == "camera" and spec.fps == 25.0 and spec.features == "pos_vel"
     points, visible = _tracks(frames=10)
     np.testing.assert_allclose(_forces(loaded, ClipSpec(), points, visible), _forces(reg, ClipSpec(), points, visible),
                                rtol=1e-5)
     # checkpoints written before ClipSpec kept the options flat
     old = _save_checkpoint(reg, tmp_path / "old.ckpt", {"frame": "camera", "fps": 25.0, "batch_size": 32})
-    assert predict.load_force_model(old)[1] == spec
+    assert TrainedModel.load(old).spec == spec
     mismatch = _save_checkpoint(reg, tmp_path / "pos.ckpt", {"spec": {"features": "pos"}})
     with pytest.raises(InputError, match="features per point"):
-        predict.load_force_model(mismatch)
+        TrainedModel.load(mismatch)
     with pytest.raises(InputError, match="checkpoint not found"):
-        predict.load_force_model(tmp_path / "missing.ckpt")
+        TrainedModel.load(tmp_path / "missing.ckpt")
 
 
 @pytest.mark.parametrize("class_path", ["vfmodels.set_transformer.SetTransformerLSTM", "vfmodels.SetTransformerLSTM"])
@@ -381,7 +383,7 @@ def test_checkpoints_saved_before_the_subpackages_still_load(tmp_path, class_pat
     assert state["force_model"]["class_path"] == "vfmodels.networks.set_transformer.SetTransformerLSTM"
     state["force_model"]["class_path"] = class_path
     torch.save(state, ckpt)
-    loaded, _ = predict.load_force_model(ckpt)
+    loaded = TrainedModel.load(ckpt).regressor
     points, visible = _tracks(frames=10)
     np.testing.assert_allclose(_forces(loaded, ClipSpec(), points, visible), _forces(reg, ClipSpec(), points, visible),
                                rtol=1e-5)
@@ -400,7 +402,7 @@ def test_a_checkpoint_cannot_choose_code_to_run(tmp_path, class_path, init_args)
                             "init_args": {k: str(v).format(marker=marker) for k, v in init_args.items()}}
     torch.save(state, ckpt)
     with pytest.raises(InputError, match="evil.ckpt"):
-        predict.load_force_model(ckpt)
+        TrainedModel.load(ckpt)
     assert not marker.exists()
 
 
@@ -409,10 +411,10 @@ def test_damaged_checkpoints_are_one_line_errors(tmp_path):
     for name, data in (("empty.ckpt", b""), ("half.ckpt", good[: len(good) // 2]), ("text.ckpt", b"hello")):
         (tmp_path / name).write_bytes(data)
         with pytest.raises(InputError, match=name):
-            predict.load_force_model(tmp_path / name)
+            TrainedModel.load(tmp_path / name)
     torch.save([1, 2, 3], tmp_path / "list.ckpt")
     with pytest.raises(InputError, match="list.ckpt"):
-        predict.load_force_model(tmp_path / "list.ckpt")
+        TrainedModel.load(tmp_path / "list.ckpt")
 
 
 def test_force_mcap_round_trip(tmp_path):
@@ -539,15 +541,15 @@ def test_displacement_tokens_and_the_mirror():
 
 def test_the_trained_tracker_is_read_from_the_checkpoint_as_a_known_name(tmp_path):
     path = _save_checkpoint(_regressor(), tmp_path / "k.ckpt")
-    assert predict.trained_tracker(path) is None  # an older checkpoint does not say: the caller's default
+    assert TrainedModel.load(path).tracker is None  # an older checkpoint does not say: the caller's default
     checkpoint = torch.load(path, weights_only=True)
     checkpoint["ForceDataModule"] = {"tracker": "klt"}
     torch.save(checkpoint, path)
-    assert predict.trained_tracker(path) == "klt"
+    assert TrainedModel.load(path).tracker == "klt"
     checkpoint["ForceDataModule"] = {"tracker": "rm -rf /"}
     torch.save(checkpoint, path)
     with pytest.raises(InputError, match="unknown tracker"):
-        predict.trained_tracker(path)
+        TrainedModel.load(path)
 
 
 @pytest.mark.parametrize("kind, up_known, says", [
@@ -590,15 +592,15 @@ def test_predict_on_an_rgbd_recording_says_its_board_frame(tmp_path):
 
 def test_the_training_tissues_lean_is_read_from_the_checkpoint(tmp_path):
     path = _save_checkpoint(_regressor(), tmp_path / "k.ckpt")
-    assert predict.trained_lean(path) is None  # an older checkpoint does not say: no note
+    assert TrainedModel.load(path).lean_deg is None  # an older checkpoint does not say: no note
     checkpoint = torch.load(path, weights_only=True)
     checkpoint["ForceDataModule"] = {"tracker": "klt", "tissue_lean_deg": [4.5, 7.25]}
     torch.save(checkpoint, path)
-    assert predict.trained_lean(path) == [4.5, 7.25]
+    assert TrainedModel.load(path).lean_deg == [4.5, 7.25]
     checkpoint["ForceDataModule"] = {"tissue_lean_deg": "low"}
     torch.save(checkpoint, path)
     with pytest.raises(InputError, match="not a range of two angles"):
-        predict.trained_lean(path)
+        TrainedModel.load(path)
 
 
 def test_predict_records_how_the_tissue_hangs_against_the_training_tissues(tmp_path):

@@ -18,7 +18,7 @@ from clip_fixtures import single_thread  # noqa: E402, F401 - autouse fixture
 
 import train  # noqa: E402
 from vfdata.errors import InputError  # noqa: E402
-from vfmodels.training.train import best_checkpoint  # noqa: E402
+from vfmodels.training.checkpoint import best_checkpoint  # noqa: E402
 
 SYNTHETIC = [
     "--model.model=vfmodels.SetTransformerLSTM", "--model.model.in_features=6",

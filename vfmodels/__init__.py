@@ -2,7 +2,7 @@
 `set_transformer`, `baselines`, `decoder`, `ridge`, `registry`), how good and how sure an estimate is
 (`evaluation/`: `metrics`, `band`), training (`training/`: the LightningModule that trains any network,
 `regressor`, and `train`, the LightningCLI behind train.py, with its callbacks), estimation with a
-trained model (`inference/`: `predict`, `live`, `stream`, `live_session`, `overlay`), experiments
+trained model (`inference/`: `trained_model`, `predict`, `live`, `stream`, `live_session`, `overlay`), experiments
 (`experiment/`), reports (`reports/`) and the model commands of `vfdata` (`commands/`).
 
 The model classes load on first use (`vfmodels.SetTransformerLSTM`, ...), so that command-line tools

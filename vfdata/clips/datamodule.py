@@ -147,8 +147,8 @@ class ForceDataModule(L.LightningDataModule):
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
-        # training recordings were tracked (vfmodels.inference.predict.trained_tracker) and records how
-        # the tissue hangs against the training tissues (vfmodels.inference.predict.trained_lean).
+        # training recordings were tracked (vfmodels.inference.trained_model) and records how
+        # the tissue hangs against the training tissues (TrainedModel.lean_deg).
         state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg}
         return {k: v for k, v in state.items() if v is not None}
 

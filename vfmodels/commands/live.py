@@ -16,7 +16,7 @@ from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.errors import InputError
 from vfdata.recording import layout
 from vfdata.threads import set_threads
-from vfmodels.commands.predict import checkpoint_file, model_engine_settings
+from vfmodels.commands.predict import model_engine_settings
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -98,12 +98,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
     from vfdata.foxglove_server import FoxgloveServer, import_foxglove
     from vfmodels.inference.live import LIVE_DEPTH_ROI_MARGIN_PX, StreamingForceEstimator
     from vfmodels.inference.live_session import LiveSession
+    from vfmodels.inference.trained_model import TrainedModel
 
     import_foxglove()  # the missing extra is said before anything else is opened
     device = resolve_device(args.device, "frames")  # the tracker and the model, one frame at a time
 
-    ckpt = checkpoint_file(args.ckpt)
-    settings = model_engine_settings(args, ckpt, device)  # tracked as the training recordings were
+    model = TrainedModel.load(args.ckpt, device)
+    settings = model_engine_settings(args, model, device)  # tracked as the training recordings were
     set_threads(args.threads)
     roi = LIVE_DEPTH_ROI_MARGIN_PX if args.depth_roi_margin is None else args.depth_roi_margin
     source, prompt = open_source(args)
@@ -112,7 +113,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None, ready=Non
         # with the stage defaults of the source's kind, as `vfdata process` takes them (RGB-D: the sensor's depth,
         # the board's plane and frame; `vfdata.rig`)
         options = EngineOptions(**settings, depth_roi_margin_px=roi)
-        estimator = StreamingForceEstimator(ckpt, source.rig, prompt, options, device=device, window=args.window,
+        estimator = StreamingForceEstimator(model, source.rig, prompt, options, window=args.window,
                                             pipelined=args.pipelined)
         server = FoxgloveServer(args.host, args.port, record=args.record, overwrite=args.overwrite)
         print(f"serving on {server.url()} (Foxglove: Open connection, Foxglove WebSocket)", file=sys.stderr,

@@ -8,12 +8,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vfdata.commands.engine_flags import add_engine_flags, engine_settings
 from vfdata.device import DEVICE_HELP, resolve_device
 from vfdata.threads import set_threads
+
+if TYPE_CHECKING:
+    from vfmodels.inference.trained_model import TrainedModel
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -49,21 +53,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def checkpoint_file(path: Path) -> Path:
-    """A .ckpt file as given, or the best checkpoint of a run folder (its checkpoints/)."""
-    from vfmodels.training.train import best_checkpoint  # Lightning: loaded by the commands that run, not by --help
-
-    if path.is_dir():
-        return best_checkpoint(path / "checkpoints" if (path / "checkpoints").is_dir() else path)
-    return path
-
-
-def model_engine_settings(args: argparse.Namespace, ckpt: Path, device: str) -> dict:
+def model_engine_settings(args: argparse.Namespace, model: TrainedModel, device: str) -> dict:
     """The pipeline flags' EngineOptions fields, the tracker (and its options under the given ones) taken
-    from the checkpoint unless --tracker names one: the tracks the model was trained on (predict and live)."""
-    from vfmodels.inference.predict import prediction_tracker  # here, not at the top: torch
-
-    tracker, tracker_options = prediction_tracker(ckpt, device, args.tracker)
+    from the model unless --tracker names one: the tracks the model was trained on (predict and live)."""
+    tracker, tracker_options = model.tracker_settings(device, args.tracker)
     settings = {**engine_settings(args), "tracker": tracker}
     settings["tracker_options"] = {**tracker_options, **settings["tracker_options"]}
     return settings
@@ -71,21 +64,22 @@ def model_engine_settings(args: argparse.Namespace, ckpt: Path, device: str) -> 
 
 def run(args: argparse.Namespace) -> int:
     set_threads(args.threads)  # with --pipelined two stages run at once: one thread each (vfdata.threads)
-    args.ckpt = checkpoint_file(args.ckpt)
-    # the tracker and a stream's model go frame by frame; offline, the model runs over the whole recording
-    args.tracker_device = resolve_device(args.device, "frames")
-    args.device = resolve_device(args.device, "frames" if args.stream else "recording")
-    settings = model_engine_settings(args, args.ckpt, args.tracker_device)
-    if args.stream:
-        return _stream(args, settings)
     # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
+    from vfmodels.inference.trained_model import TrainedModel
+
+    # the tracker and a stream's model go frame by frame; offline, the model runs over the whole recording
+    tracker_device = resolve_device(args.device, "frames")
+    device = resolve_device(args.device, "frames" if args.stream else "recording")
+    model = TrainedModel.load(args.ckpt, device)
+    settings = model_engine_settings(args, model, tracker_device)
+    if args.stream:
+        return _stream(args, model, settings)
     from vfdata.processing import ProcessOptions
     from vfmodels.inference.predict import predict_recording
 
     options = ProcessOptions(**settings, prompt=args.prompt, max_frames=args.max_frames, threads=args.threads)
-    result = predict_recording(args.recording, args.ckpt, args.out, options, window=args.window,
-                               video=not args.no_video, progress=not args.quiet, overwrite=args.overwrite,
-                               device=args.device)
+    result = predict_recording(args.recording, model, args.out, options, window=args.window,
+                               video=not args.no_video, progress=not args.quiet, overwrite=args.overwrite)
     print(f"{result.frames} frames; object frame X axis: {result.x_axis}")
     if result.confidence is not None and result.confidence.doubtful:
         print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)
@@ -108,14 +102,12 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stream(args: argparse.Namespace, settings: dict) -> int:
-    # here, not at the top: the engine and the models pull in torch; `vfdata --help` starts without it
+def _stream(args: argparse.Namespace, model: TrainedModel, settings: dict) -> int:
     from vfdata.engine import EngineOptions
     from vfmodels.inference.stream import stream_recording
 
-    result = stream_recording(args.recording, args.ckpt, args.out, EngineOptions(**settings), prompt=args.prompt,
-                              window=args.window,
-                              pipelined=args.pipelined, device=args.device, max_frames=args.max_frames,
+    result = stream_recording(args.recording, model, args.out, EngineOptions(**settings), prompt=args.prompt,
+                              window=args.window, pipelined=args.pipelined, max_frames=args.max_frames,
                               overwrite=args.overwrite, progress=not args.quiet)
     if result.confidence.doubtful:
         print(f"warning: {args.recording}: doubtful: {result.confidence.describe()}", file=sys.stderr)

@@ -42,10 +42,11 @@ from vfmodels.experiment.report import write_reports
 from vfmodels.experiment.ridge_run import run_ridge
 from vfmodels.experiment.runs import run_folder, write_run
 from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant, for_depth_only
+from vfmodels.training.checkpoint import best_checkpoint
 from vfmodels.training.config_files import CONFIGS
 from vfmodels.training.prediction_writer import PredictionCollector
 from vfmodels.training.regressor import ForceRegressor
-from vfmodels.training.train import adopt_normalisation, best_checkpoint, make_cli
+from vfmodels.training.train import adopt_normalisation, make_cli
 
 # Tables I-III follow the paper's protocol: every epoch of the config, then the best validation checkpoint.
 PAPER_PROTOCOL = ("--early_stopping.patience=null",)

@@ -34,7 +34,7 @@ from vfdata.recon import Prompt
 from vfdata.rig import Rig
 from vfdata.tissue_lean import frame_lean, lean_metadata
 from vfmodels.evaluation.band import unlikeness
-from vfmodels.inference.predict import history, load_force_model, model_device, trained_lean
+from vfmodels.inference.trained_model import TrainedModel, history, model_device
 from vfmodels.training.regressor import ForceRegressor
 
 # The live default of the depth's region of interest (`EngineOptions.depth_roi_margin_px`): depth
@@ -168,15 +168,17 @@ class StreamingForceEstimator:
     while the pipeline fills; `flush()` returns what is still in it, and the next push starts a new
     stream. `engine.clock` holds each stage's wall time and the CPU time of the thread that ran it."""
 
-    def __init__(self, ckpt: str | Path, rig: Rig, prompt: str | Prompt, options: EngineOptions | None = None,
-                 window: int | None = None, pipelined: bool = False, device: str = "cpu"):
-        """`rig`: the input (a recording replayed or a camera, `vfdata.rig`); `options` get its kind's
-        defaults (`Rig.stage_options`); `device`: where the force model runs (the tracker's is
-        `options.tracker_options["device"]`); `window`: frames of history (None: the clip length the model
-        was trained on; 0: the whole stream)."""
+    def __init__(self, ckpt: TrainedModel | str | Path, rig: Rig, prompt: str | Prompt,
+                 options: EngineOptions | None = None, window: int | None = None, pipelined: bool = False,
+                 device: str = "cpu"):
+        """`ckpt`: a checkpoint file or the model loaded from one; `rig`: the input (a recording replayed or a
+        camera, `vfdata.rig`); `options` get its kind's defaults (`Rig.stage_options`); `device`: where the
+        force model runs (the tracker's is `options.tracker_options["device"]`); `window`: frames of history
+        (None: the clip length the model was trained on; 0: the whole stream)."""
         self.rig, self.options = rig, rig.stage_options(options or EngineOptions())
-        self.regressor, self.spec = load_force_model(ckpt, device)
-        self.training_lean = trained_lean(ckpt)  # how low the training tissues hang (deg; vfdata.tissue_lean)
+        model = TrainedModel.of(ckpt, device)
+        self.regressor, self.spec = model.regressor, model.spec
+        self.training_lean = model.lean_deg  # how low the training tissues hang (deg; vfdata.tissue_lean)
         self.prompt = prompt if isinstance(prompt, Prompt) else Prompt.parse(prompt)
         self.window, self.pipelined = history(self.spec, window), pipelined
         self._pool: ThreadPoolExecutor | None = None

@@ -36,12 +36,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.decode import object_force_at
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import frame_rate, mirror_y, track_tokens
 from vfdata.confidence import Confidence
-from vfdata.device import shared_device_options
 from vfdata.errors import InputError, OutputExistsError, VisionForceError
 from vfdata.processing import ProcessOptions, process_recording
 from vfdata.recon.object_frame import ObjectFrame, x_axis_meaning
@@ -49,68 +47,14 @@ from vfdata.recording import Recording, layout
 from vfdata.recording.derived import Tracks, read_tracker_name, read_tracks, write_force_estimate
 from vfdata.rig import rig_for
 from vfdata.tissue_lean import lean_metadata, recording_lean
-from vfdata.tracking.registry import TRACKERS
 from vfmodels.evaluation.band import band_metrics, describe, unfamiliar, unlikeness
 from vfmodels.evaluation.metrics import force_metrics
 from vfmodels.inference.overlay import OverlayVideo, draw_force_overlay, force_to_camera, overlay_scale
+from vfmodels.inference.trained_model import TrainedModel, history, model_device
 from vfmodels.reports.figures import plot_force_series
-from vfmodels.training.checkpoint import read_checkpoint
 from vfmodels.training.regressor import Estimate, ForceRegressor
 
-# ---- the model -----------------------------------------------------------------------------------
-
-
-def load_force_model(ckpt: str | Path, device: str = "cpu") -> tuple[ForceRegressor, ClipSpec]:
-    """The trained point regressor (eval mode, on `device`: `vfdata.device.resolve_device`) and the
-    ClipSpec it was trained with."""
-    regressor = ForceRegressor.load(ckpt)
-    if regressor.model.input_key != "tokens":
-        raise InputError(ckpt, f"{type(regressor.model).__name__} takes {regressor.model.input_key}, not tracked "
-                               "points: prediction runs the point-based models (visionforce, proposed, ablations)")
-    spec = spec_from_checkpoint_hparams(read_checkpoint(ckpt).get("datamodule_hyper_parameters") or {}, Path(ckpt))
-    if spec.input != "tracks":
-        raise InputError(ckpt, f"the model was trained on '{spec.input}' inputs, not tracked points")
-    if not regressor.causal:
-        raise InputError(ckpt, f"{type(regressor.model).__name__} does not run frame by frame (no encode_frames/"
-                               "decode_frames: vfmodels/training/regressor.py says what a model implements)")
-    if regressor.model.config.get("in_features", spec.channels) != spec.channels:
-        raise InputError(ckpt, f"model takes {regressor.model.config['in_features']} features per point, its "
-                               f"clip spec gives {spec.channels} ({spec.features})")
-    return regressor.to(device), spec
-
-
-def trained_tracker(ckpt: str | Path) -> str | None:
-    """The tracker whose tracks a checkpoint's model was trained on (saved by `ForceDataModule`), or
-    None when the checkpoint does not say (older checkpoints, other inputs)."""
-    state = read_checkpoint(ckpt).get("ForceDataModule") or {}
-    tracker = state.get("tracker") if isinstance(state, dict) else None
-    if tracker is not None and tracker not in TRACKERS:
-        raise InputError(ckpt, f"the checkpoint names an unknown tracker {tracker!r} (known: {', '.join(TRACKERS)})")
-    return tracker
-
-
-def trained_lean(ckpt: str | Path) -> list[float] | None:
-    """[low, high] (deg): how low the tissues a checkpoint's model was trained on hang below level (saved by
-    `ForceDataModule`; `vfdata.tissue_lean`), or None when the checkpoint does not say."""
-    state = read_checkpoint(ckpt).get("ForceDataModule") or {}
-    lean = state.get("tissue_lean_deg") if isinstance(state, dict) else None
-    if lean is None:
-        return None
-    if not (isinstance(lean, (list, tuple)) and len(lean) == 2 and all(isinstance(v, (int, float)) for v in lean)):
-        raise InputError(ckpt, f"the checkpoint's tissue_lean_deg {lean!r} is not a range of two angles")
-    return [float(v) for v in lean]
-
-
-def prediction_tracker(ckpt: str | Path, device: str, tracker: str | None = None) -> tuple[str, dict]:
-    """The tracker to process with (`tracker`, else the one the checkpoint's model was trained on, else
-    geometry) and its options on a resolved `device`: the model goes to `device`, and a tracker
-    without a GPU path (KLT) stays on the CPU."""
-    tracker = tracker or trained_tracker(ckpt) or "geometry"
-    return tracker, shared_device_options(tracker, device)
-
-
-def model_device(regressor: ForceRegressor) -> torch.device:
-    return next(regressor.parameters()).device
+# ---- the model: tracks -> forces ---------------------------------------------------------------
 
 
 @torch.no_grad()
@@ -175,14 +119,6 @@ def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks
     return estimate.force_n, side
 
 
-def history(spec: ClipSpec, window: int | None) -> int:
-    """Frames of history a force is estimated from: `window`, or the clip length the model was trained on
-    (None); 0 carries the temporal state over the whole recording."""
-    if window is not None and window < 0:
-        raise VisionForceError(f"window {window}: a number of frames >= 0 (0: the whole recording)")
-    return spec.clip_frames if window is None else int(window)
-
-
 # ---- offline pipeline ----------------------------------------------------------------------------
 
 
@@ -223,17 +159,19 @@ def _tracked_by(processed: Path) -> str | None:
         return None
 
 
-def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | None = None,
+def predict_recording(src: str | Path, ckpt: TrainedModel | str | Path, out_dir: str | Path | None = None,
                       options: ProcessOptions | None = None, window: int | None = None, video: bool = True,
                       progress: bool = True, overwrite: bool = False, reuse_processed: bool = True,
                       device: str = "cpu") -> PredictResult:
     """The whole pipeline on a recording MCAP (force channel and ECM pose not needed). Existing
     outputs are refused unless `overwrite`; an existing `<id>.predict.processed.mcap` (the tracks of
-    an earlier run) is reused unless `reuse_processed` is False."""
+    an earlier run) is reused unless `reuse_processed` is False. `ckpt`: a checkpoint file or the model
+    loaded from one (then `device` is the one it was loaded on)."""
     src = Path(src)
     if not src.is_file():
         raise InputError(src, "recording not found")
-    regressor, spec = load_force_model(ckpt, device)
+    model = TrainedModel.of(ckpt, device)
+    regressor, spec = model.regressor, model.spec
     out_dir = Path(out_dir) if out_dir is not None else src.parent
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = output_paths(src, out_dir, video)
@@ -257,10 +195,10 @@ def predict_recording(src: str | Path, ckpt: str | Path, out_dir: str | Path | N
     frames_beyond = int((beyond != 0).any(axis=1).sum())
     unlike = unfamiliar(estimate.distance, calibration)
     confidence = tracks.metadata.confidence
-    lean_note, lean_meta = lean_metadata(recording_lean(tracks.metadata, tracks.frame, src), trained_lean(ckpt))
+    lean_note, lean_meta = lean_metadata(recording_lean(tracks.metadata, tracks.frame, src), model.lean_deg)
     meta = {**(confidence.metadata() if confidence is not None else {}), **lean_meta,
             "stage": "predict", "source": str(src.resolve()), "processed": str(paths["processed"].resolve()),
-            "checkpoint": str(Path(ckpt).resolve()), "clip_spec": json.dumps(spec.to_dict()),
+            "checkpoint": str(model.path.resolve()), "clip_spec": json.dumps(spec.to_dict()),
             "window": str(window), "x_axis": x_axis, "side": str(side), "force_fps": f"{force_fps:.1f}",
             "band": json.dumps(None if calibration is None else calibration.to_dict()),
             "frames_beyond_training": str(frames_beyond), "frames_unlike_training": str(int(unlike.sum()))}
@@ -323,7 +261,5 @@ def overlay_label(i: int, force_n: np.ndarray, band_n: np.ndarray | None, beyond
     return label + ("  BEYOND TRAINING" if beyond else "") + ("  UNLIKE TRAINING" if unlike else "")
 
 
-__all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "history",
-           "load_force_model", "overlay_label", "predict_recording", "prediction_tracker", "trained_lean",
-           "trained_tracker",
-           "windowed_estimate", "windowed_forces", "write_overlay_video"]
+__all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "overlay_label",
+           "predict_recording", "windowed_estimate", "windowed_forces", "write_overlay_video"]

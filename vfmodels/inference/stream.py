@@ -21,6 +21,7 @@ from vfdata.recon.object_frame import x_axis_meaning
 from vfdata.recording.derived import write_force_estimate
 from vfdata.sources import RecordingReplay
 from vfmodels.inference.live import StreamingForceEstimator
+from vfmodels.inference.trained_model import TrainedModel
 
 
 @dataclass
@@ -39,11 +40,12 @@ class StreamResult:
     lean_note: str | None = None  # the tissue hangs outside the training tissues (vfdata.tissue_lean), in words
 
 
-def stream_recording(recording: Path, ckpt: Path, out: Path | None, options: EngineOptions, *,
+def stream_recording(recording: Path, ckpt: TrainedModel | Path, out: Path | None, options: EngineOptions, *,
                      prompt: str | None = None, window: int | None = None, pipelined: bool = False,
                      device: str = "cpu", max_frames: int | None = None, overwrite: bool = False,
                      progress: bool = True) -> StreamResult:
-    """Feed `recording`'s frames one by one to a `StreamingForceEstimator` of `ckpt` and write
+    """Feed `recording`'s frames one by one to a `StreamingForceEstimator` of `ckpt` (a checkpoint file or the
+    model loaded from one) and write
     OUT/<id>.force.mcap (/force/estimate with its band and beyond, as `predict_recording` writes;
     OUT defaults to the recording's folder). The recording's rig gives the stage defaults of its kind."""
     out = Path(out or recording.parent)

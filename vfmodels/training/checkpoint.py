@@ -1,7 +1,7 @@
-"""Checkpoints: reading one as data (`read_checkpoint`, and what `ForceRegressor` keeps beside its weights:
-`band_from_checkpoint`, `reference_from_checkpoint`), and `ResumableCheckpoint`,
-Lightning's ModelCheckpoint (the best checkpoint by the monitored metric)
-whose `last.ckpt` is rewritten after every epoch.
+"""Checkpoints: reading one as data (`read_checkpoint`; a run's best, `best_checkpoint`; and what
+`ForceRegressor` keeps beside its weights: `band_from_checkpoint`, `reference_from_checkpoint`), and
+`ResumableCheckpoint`, Lightning's ModelCheckpoint (the best checkpoint by the monitored metric) whose
+`last.ckpt` is rewritten after every epoch.
 
 Since Lightning 2.6, `save_last=True` writes `last.ckpt` only when a top-k checkpoint is saved, i.e.
 when the validation loss improves. A run whose best epoch is early then keeps an early `last.ckpt`,
@@ -23,7 +23,7 @@ from vfdata.weights import load_weights
 from vfmodels.evaluation import band
 
 
-def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """A checkpoint's contents, read as data only (no code runs: `vfdata.weights.load_weights`); an
     InputError naming the file when it is missing, damaged or not a checkpoint."""
     path = Path(path)
@@ -33,6 +33,33 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(checkpoint, dict):
         raise InputError(path, "not a checkpoint (its contents are not a dictionary)")
     return checkpoint
+
+
+def best_checkpoint(dirpath: str | Path) -> Path:
+    """The best checkpoint of a finished run: the one its ModelCheckpoint recorded in last.ckpt (by
+    val/loss), else the only or lowest-loss *.ckpt other than last.ckpt in `dirpath`."""
+    dirpath = Path(dirpath)
+    last = dirpath / "last.ckpt"
+    if last.is_file():
+        for key, value in read_checkpoint(last).get("callbacks", {}).items():
+            # "ModelCheckpoint{...}" in runs from before ResumableCheckpoint.
+            if key.startswith(("ModelCheckpoint", "ResumableCheckpoint")) and value.get("best_model_path"):
+                best = Path(value["best_model_path"])
+                if best.is_file():
+                    return best
+                if (dirpath / best.name).is_file():  # the run folder was moved
+                    return dirpath / best.name
+    candidates = [p for p in dirpath.glob("*.ckpt") if p.name != "last.ckpt"]
+    if not candidates:
+        raise InputError(dirpath, "no checkpoint to use as 'best' (train first, or pass --ckpt_path FILE)")
+
+    def val_loss(p: Path) -> float:
+        try:
+            return float(p.stem.rpartition("val_loss")[2])
+        except ValueError:
+            return float("inf")
+
+    return min(candidates, key=val_loss)
 
 
 def band_from_checkpoint(checkpoint: dict[str, Any], path: Path) -> band.BandCalibration | None:

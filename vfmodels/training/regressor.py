@@ -458,12 +458,13 @@ class ForceRegressor(L.LightningModule):
         self.embedding_reference = reference_from_checkpoint(checkpoint, Path("checkpoint"))
 
     @classmethod
-    def load(cls, path: str | Path, map_location: str | torch.device = "cpu") -> ForceRegressor:
-        """A trained regressor from a checkpoint file alone, in eval mode. The file is read as data
-        (`weights_only=True`) and may name only a model of `vfmodels.networks.registry`. Pretrained-weight
-        files named in the model config are not needed: the checkpoint has the weights."""
+    def load(cls, path: str | Path, checkpoint: dict[str, Any] | None = None) -> ForceRegressor:
+        """A trained regressor from a checkpoint file alone (or its contents already read, `checkpoint`), in
+        eval mode on the CPU. The file is read as data (`weights_only=True`) and may name only a model of
+        `vfmodels.networks.registry`. Pretrained-weight files named in the model config are not needed: the
+        checkpoint has the weights."""
         path = Path(path)
-        checkpoint = read_checkpoint(path)
+        checkpoint = read_checkpoint(path) if checkpoint is None else checkpoint
         spec = checkpoint.get("force_model")
         if not isinstance(spec, dict) or not isinstance(spec.get("init_args", {}), dict):
             raise InputError(path, "not a ForceRegressor checkpoint (no 'force_model' entry)")

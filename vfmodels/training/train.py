@@ -31,7 +31,7 @@ from vfdata.clips.datamodule import ForceDataModule  # noqa: F401 - so that `--d
 from vfdata.errors import InputError, VisionForceError
 from vfdata.threads import DEFAULT_THREADS, THREADS_HELP, set_threads
 from vfmodels.networks.registry import MODELS, class_path
-from vfmodels.training.checkpoint import ResumableCheckpoint, read_checkpoint
+from vfmodels.training.checkpoint import ResumableCheckpoint, best_checkpoint, read_checkpoint
 from vfmodels.training.cli_errors import ForceArgumentParser
 from vfmodels.training.early_stopping import ValidationEarlyStopping
 from vfmodels.training.epoch_timer import EpochTimer
@@ -43,33 +43,6 @@ from vfmodels.training.run_folder import closing_line, remove_new_entries, run_e
 
 DESCRIPTION = ("VisionForce: train, test and run the force models (Set Transformer-LSTM on tracked tissue "
                "points, and the baselines) on processed recordings; configs in configs/, docs in docs/models.md.")
-
-
-def best_checkpoint(dirpath: str | Path) -> Path:
-    """The best checkpoint of a finished run: the one its ModelCheckpoint recorded in last.ckpt (by
-    val/loss), else the only or lowest-loss *.ckpt other than last.ckpt in `dirpath`."""
-    dirpath = Path(dirpath)
-    last = dirpath / "last.ckpt"
-    if last.is_file():
-        for key, value in read_checkpoint(last).get("callbacks", {}).items():
-            # "ModelCheckpoint{...}" in runs from before ResumableCheckpoint.
-            if key.startswith(("ModelCheckpoint", "ResumableCheckpoint")) and value.get("best_model_path"):
-                best = Path(value["best_model_path"])
-                if best.is_file():
-                    return best
-                if (dirpath / best.name).is_file():  # the run folder was moved
-                    return dirpath / best.name
-    candidates = [p for p in dirpath.glob("*.ckpt") if p.name != "last.ckpt"]
-    if not candidates:
-        raise InputError(dirpath, "no checkpoint to use as 'best' (train first, or pass --ckpt_path FILE)")
-
-    def val_loss(p: Path) -> float:
-        try:
-            return float(p.stem.rpartition("val_loss")[2])
-        except ValueError:
-            return float("inf")
-
-    return min(candidates, key=val_loss)
 
 
 def adopt_normalisation(model: ForceRegressor, datamodule: LightningDataModule) -> None:
