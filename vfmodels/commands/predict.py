@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     settings = model_engine_settings(args, model, tracker_device)
     if args.stream:
         return _stream(args, model, settings)
-    from vfdata.processing import ProcessOptions
+    from vfdata.processing import ProcessOptions  # torch, as above
     from vfmodels.inference.predict import predict_recording
 
     options = ProcessOptions(**settings, prompt=args.prompt, max_frames=args.max_frames, threads=args.threads)
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _stream(args: argparse.Namespace, model: TrainedModel, settings: dict) -> int:
-    from vfdata.engine import EngineOptions
+    from vfdata.engine import EngineOptions  # torch: here, not at the top (see run)
     from vfmodels.inference.stream import stream_recording
 
     result = stream_recording(args.recording, model, args.out, EngineOptions(**settings), prompt=args.prompt,
