@@ -240,7 +240,8 @@ def test_a_model_that_cannot_run_frame_by_frame_is_refused_in_one_line(tmp_path,
 
     ckpt = _save_checkpoint(_regressor(), tmp_path / "c.ckpt", {"spec": {"input": "tracks"}})
     assert TrainedModel.load(ckpt).regressor.causal
-    monkeypatch.setattr(ForceRegressor, "load", classmethod(lambda cls, path, checkpoint=None: ForceRegressor(WholeClip())))
+    monkeypatch.setattr(ForceRegressor, "load", classmethod(lambda cls, path, checkpoint=None:
+                                                            ForceRegressor(WholeClip())))
     with pytest.raises(InputError, match="c.ckpt: WholeClip does not run frame by frame"):
         TrainedModel.load(ckpt)
 
@@ -603,16 +604,24 @@ def test_the_training_tissues_lean_is_read_from_the_checkpoint(tmp_path):
         TrainedModel.load(path)
 
 
-def test_predict_records_how_the_tissue_hangs_against_the_training_tissues(tmp_path):
-    """A model whose training tissues hung 20-25 deg below level: the recording's tissue hangs outside their
-    range, which the result and the force file's metadata record; within the range, they do not."""
+@pytest.fixture(scope="module")
+def mini_recording(tmp_path_factory):
+    """A six-frame simulated recording (mini seed 0's test recording), converted."""
     from vfdata.conversion.raw_folder import ConvertOptions, convert_raw_folder
     from vfdata.sim import synthesize
+
+    root = tmp_path_factory.mktemp("mini")
+    manifest = synthesize("mini", root / "data", seed=0, workers=1, progress=False, frames=6)
+    return convert_raw_folder(manifest.parent / "mini_002", root / "mini_002.mcap",
+                              options=ConvertOptions(progress=False))
+
+
+def test_predict_records_how_the_tissue_hangs_against_the_training_tissues(tmp_path, mini_recording):
+    """A model whose training tissues hung 20-25 deg below level: the recording's tissue hangs outside their
+    range, which the result and the force file's metadata record; within the range, they do not."""
     from vfdata.tissue_lean import read_lean, unlike_training
 
-    manifest = synthesize("mini", tmp_path / "data", seed=0, workers=1, progress=False, frames=6)
-    recording = convert_raw_folder(manifest.parent / "mini_002", tmp_path / "mini_002.mcap",
-                                   options=ConvertOptions(progress=False))
+    recording = mini_recording
     ckpt = _save_checkpoint(_regressor(), tmp_path / "m.ckpt", {"spec": {"input": "tracks", "fps": 30.0}})
     checkpoint = torch.load(ckpt, weights_only=True)
     checkpoint["ForceDataModule"] = {"tissue_lean_deg": [20.0, 25.0]}
@@ -631,3 +640,32 @@ def test_predict_records_how_the_tissue_hangs_against_the_training_tissues(tmp_p
     again = predict.predict_recording(recording, ckpt, tmp_path / "out", window=4, video=False, progress=False,
                                       overwrite=True)
     assert again.lean_note is None
+
+
+def test_a_run_folder_is_its_best_checkpoint_and_predict_reads_it_once(tmp_path, mini_recording, monkeypatch,
+                                                                       capsys):
+    """`--ckpt` takes a run folder (its best checkpoint by validation loss), and `vfdata predict` reads the
+    checkpoint once, handing the loaded model down (`TrainedModel`), however many of its facts it asks."""
+    from vfdata.cli import main
+    from vfmodels.training import checkpoint as checkpoint_module
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    spec = {"spec": {"input": "tracks", "fps": 30.0}}
+    best = _save_checkpoint(_regressor(1), run / "checkpoints" / "epoch003-val_loss0.50000.ckpt", spec)
+    _save_checkpoint(_regressor(2), run / "checkpoints" / "epoch001-val_loss0.90000.ckpt", spec)
+    assert TrainedModel.load(run).path == best
+    assert TrainedModel.load(run / "checkpoints").path == best
+
+    recording = mini_recording
+    reads = []
+    load_weights = checkpoint_module.load_weights
+    monkeypatch.setattr(checkpoint_module, "load_weights", lambda path, what: reads.append(path) or
+                        load_weights(path, what))
+    assert main(["predict", str(recording), "--ckpt", str(best), "--out", str(tmp_path / "out"), "--window", "4",
+                 "--tracker", "klt", "--no-video", "--quiet"]) == 0
+    assert reads == [best]
+    with Recording.open(tmp_path / "out" / "mini_002.force.mcap") as rec:
+        meta = rec.metadata_records[layout.DERIVED_METADATA]
+    assert meta["checkpoint"] == str(best.resolve())
+    assert "RMSE against the recording's force sensor" in capsys.readouterr().out
