@@ -144,8 +144,8 @@ def test_the_tracker_and_force_model_on_cuda_agree_with_the_cpu():
 
     points, visible = _tracks(frames=20)
     reg = _regressor()
-    cpu = predict.forces_from_tracks(reg, ClipSpec(), _as_tracks(points, visible), 8)[0]
-    gpu = predict.forces_from_tracks(reg.to("cuda"), ClipSpec(), _as_tracks(points, visible), 8)[0]
+    cpu = predict.estimate_from_tracks(reg, ClipSpec(), _as_tracks(points, visible), 8)[0].force_n
+    gpu = predict.estimate_from_tracks(reg.to("cuda"), ClipSpec(), _as_tracks(points, visible), 8)[0].force_n
     # N: a force sensor such as the ATI Nano17 resolves ~3 mN, 30 times the absolute tolerance.
     np.testing.assert_allclose(gpu, cpu, rtol=1e-3, atol=1e-4)
 

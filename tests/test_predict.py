@@ -201,7 +201,7 @@ def _as_tracks(points: np.ndarray, visible: np.ndarray) -> Tracks:
 
 
 def _forces(reg, spec, points, visible, window=None) -> np.ndarray:
-    return predict.forces_from_tracks(reg, spec, _as_tracks(points, visible), window)[0]
+    return predict.estimate_from_tracks(reg, spec, _as_tracks(points, visible), window)[0].force_n
 
 
 def test_windowed_forces_equal_the_model_on_each_causal_window():
@@ -320,7 +320,7 @@ def test_streaming_model_cuts_velocities_at_dropped_frames_as_offline():
     points, visible = _tracks(frames=30)
     period = 33_333_333
     stamps = np.arange(30) * period + np.where(np.arange(30) >= 9, period, 0) + np.where(np.arange(30) >= 20, period, 0)
-    offline = predict.forces_from_tracks(reg, ClipSpec(), Tracks(stamps, points, visible, IDENTITY), 8)[0]
+    offline = predict.estimate_from_tracks(reg, ClipSpec(), Tracks(stamps, points, visible, IDENTITY), 8)[0].force_n
     stream = StreamingForceModel(reg, ClipSpec(), np.eye(3), np.zeros(3), window=8)
     results = [stream.push(s, p, v) for s, p, v in zip(stamps, points, visible, strict=True)][1:] + [stream.flush()]
     np.testing.assert_allclose(np.stack([r[1] for r in results]), offline, rtol=1e-4, atol=1e-5)

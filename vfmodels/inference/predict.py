@@ -93,11 +93,6 @@ def windowed_estimate(regressor: ForceRegressor, z: torch.Tensor, window: int) -
     return Estimate(*fields)
 
 
-def windowed_forces(regressor: ForceRegressor, z: torch.Tensor, window: int) -> np.ndarray:
-    """Forces (T, 3) in N of `windowed_estimate`."""
-    return windowed_estimate(regressor, z, window).force_n
-
-
 def estimate_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = None
                          ) -> tuple[Estimate, float]:
     """A whole recording's tracks -> (the `Estimate`: forces, band and spread, each (T, 3) N in the object
@@ -110,13 +105,6 @@ def estimate_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Trac
         return Estimate(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)), side
     estimate = windowed_estimate(regressor, frame_embeddings(regressor, tokens, valid), history(spec, window))
     return estimate._replace(force_n=mirror_y(estimate.force_n, side)), side
-
-
-def forces_from_tracks(regressor: ForceRegressor, spec: ClipSpec, tracks: Tracks, window: int | None = None
-                       ) -> tuple[np.ndarray, float]:
-    """(forces (T, 3) N, side) of `estimate_from_tracks`."""
-    estimate, side = estimate_from_tracks(regressor, spec, tracks, window)
-    return estimate.force_n, side
 
 
 # ---- offline pipeline ----------------------------------------------------------------------------
@@ -261,5 +249,5 @@ def overlay_label(i: int, force_n: np.ndarray, band_n: np.ndarray | None, beyond
     return label + ("  BEYOND TRAINING" if beyond else "") + ("  UNLIKE TRAINING" if unlike else "")
 
 
-__all__ = ["PredictResult", "estimate_from_tracks", "forces_from_tracks", "frame_embeddings", "overlay_label",
-           "predict_recording", "windowed_estimate", "windowed_forces", "write_overlay_video"]
+__all__ = ["PredictResult", "estimate_from_tracks", "frame_embeddings", "overlay_label", "predict_recording",
+           "windowed_estimate", "write_overlay_video"]
