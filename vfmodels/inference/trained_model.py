@@ -19,12 +19,13 @@ import torch
 from vfdata.clips.datamodule import spec_from_checkpoint_hparams
 from vfdata.clips.spec import ClipSpec
 from vfdata.device import shared_device_options
+from vfdata.engine import EngineOptions
 from vfdata.errors import InputError, VisionForceError
 from vfdata.tracking.registry import TRACKERS
 from vfmodels.training.checkpoint import best_checkpoint, read_checkpoint
 from vfmodels.training.regressor import ForceRegressor
 
-DEFAULT_TRACKER = "geometry"  # for a checkpoint that does not say which tracks it was trained on
+DEFAULT_TRACKER = EngineOptions.tracker  # the engine's, for a checkpoint that does not say which tracks it had
 
 
 @dataclass(frozen=True)
@@ -72,14 +73,10 @@ class TrainedModel:
         tracker = tracker or self.tracker or DEFAULT_TRACKER
         return tracker, shared_device_options(tracker, device)
 
-    def history(self, window: int | None) -> int:
-        """Frames of history a force is estimated from: `window`, or the clip length the model was trained
-        on (None); 0 carries the temporal state over the whole recording."""
-        return history(self.spec, window)
-
 
 def history(spec: ClipSpec, window: int | None) -> int:
-    """`TrainedModel.history` of a ClipSpec."""
+    """Frames of history a force is estimated from: `window`, or the clip length the model was trained on
+    (`spec.clip_frames`, for None); 0 carries the temporal state over the whole recording."""
     if window is not None and window < 0:
         raise VisionForceError(f"window {window}: a number of frames >= 0 (0: the whole recording)")
     return spec.clip_frames if window is None else int(window)
