@@ -18,7 +18,7 @@ def test_every_command_registers():
     """The data commands of vfdata and the model commands vfmodels adds through its entry points."""
     parser = build_parser()
     choices = parser._subparsers._group_actions[0].choices
-    assert set(choices) == {*COMMANDS, "experiment", "live", "predict", "quickstart"}
+    assert set(choices) == {*COMMANDS, "experiment", "live", "model-info", "predict", "quickstart"}
 
 
 def test_vfdata_imports_nothing_of_vfmodels():

@@ -484,7 +484,8 @@ def test_the_one_line_ways_in_and_denormalise(dataset_root):
 
 def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path):
     """The data module's state (Lightning saves it in every checkpoint) names the tracker of the training
-    recordings' derived files, so prediction can track the same way; nothing when they do not say."""
+    recordings' derived files, so prediction can track the same way (nothing when they do not say), and
+    the recordings trained and validated on (`vfdata model-info`)."""
     write_recording(tmp_path, "a", frame_times(40), tracker="klt")
     write_recording(tmp_path, "b", frame_times(23), tracker="geometry")
     write_recording(tmp_path, "c", frame_times(18))
@@ -493,6 +494,10 @@ def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path)
         {"id": "b", "orientation_deg": 0, "split": "val"},
         {"id": "c", "orientation_deg": 45, "split": "test"},
     ])
-    assert ForceDataModule.from_manifest(manifest, progress=False).state_dict() == {"tracker": "klt"}
+    assert ForceDataModule.from_manifest(manifest, progress=False).state_dict() == {
+        "tracker": "klt", "recordings": {"train": ["a"], "val": ["b"]}}
+    shuffled = ForceDataModule.from_manifest(manifest, progress=False, random_split=0.2)
+    assert shuffled.state_dict()["recordings"] == {"shuffled": ["a", "b", "c"]}
     unnamed = write_manifest(tmp_path, [{"id": "c", "orientation_deg": 0, "split": "train"}])
-    assert ForceDataModule.from_manifest(unnamed, progress=False).state_dict() == {}
+    assert ForceDataModule.from_manifest(unnamed, progress=False).state_dict() == {
+        "recordings": {"train": ["c"], "val": []}}

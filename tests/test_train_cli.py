@@ -164,6 +164,7 @@ def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path)
 
     from vfdata.clips.dataset import ForceClipDataset
     from vfdata.clips.tokens import latest_clip_frames
+    from vfmodels.training.model_card import read_model_card
     from vfmodels.training.regressor import ForceRegressor
 
     for rid, frames in (("a", 24), ("b", 20), ("c", 20)):
@@ -179,7 +180,10 @@ def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path)
     state = torch.load(best, weights_only=True)
     assert state["force_model"]["symmetry_turns"] == 1 and state["force_model"]["init_args"]["in_features"] == 12
     assert state["datamodule_hyper_parameters"]["spec"]["features"] == "polar_z_disp_vel"
-    assert state["ForceDataModule"] == {"tracker": "klt"}
+    assert state["ForceDataModule"] == {"tracker": "klt", "recordings": {"train": ["a"], "val": ["b"]}}
+    card = read_model_card(tmp_path / "run")  # what `vfdata model-info` prints of it
+    assert card["file"] == str(best) and card["training"]["recordings"] == {"train": ["a"], "val": ["b"]}
+    assert card["band"]["frames"] == 20 and card["inputs"]["tracker"] == "klt"
 
     train.main(["test", *run, f"--ckpt_path={best}"])
     logged = (tmp_path / "run" / "csv" / "version_1" / "metrics.csv").read_text().splitlines()

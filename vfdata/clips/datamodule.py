@@ -149,8 +149,19 @@ class ForceDataModule(L.LightningDataModule):
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
         # training recordings were tracked (vfmodels.inference.trained_model) and records how
         # the tissue hangs against the training tissues (TrainedModel.lean_deg).
-        state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg}
+        # The recordings trained and validated on, by id, so that a lab given only the file can read what
+        # the model has seen (`vfdata model-info`); a random split names them all.
+        state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg,
+                 "recordings": self.recording_ids}
         return {k: v for k, v in state.items() if v is not None}
+
+    @property
+    def recording_ids(self) -> dict[str, list[str]]:
+        """The ids of the recordings training and validation read ({"train": [...], "val": [...]}), or
+        {"shuffled": [...]} with a random split (the clips of all of them shuffled into train, val, test)."""
+        if self.random_split:
+            return {"shuffled": list(dict.fromkeys(e.id for e in self.manifest.entries))}
+        return {split: [e.id for e in self.manifest.entries if e.split == split] for split in ("train", "val")}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         pass  # nothing to restore: the tracker is read by prediction, not by training

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vfdata.errors import InputError
 from vfdata.recording.inspect import info_text
 
 
@@ -18,5 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.file.suffix == ".ckpt" or (args.file / "checkpoints").is_dir():
+        raise InputError(args.file, "a trained model, not an MCAP file: `vfdata model-info` describes models")
     print(info_text(args.file))
     return 0
