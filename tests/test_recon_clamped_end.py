@@ -89,6 +89,20 @@ def test_the_vote_follows_the_sure_cues_and_says_when_they_disagree():
     assert torn.low_end_clamped and torn.doubtful and not torn.agree
     unsure = decide([Cue("taper", 1, 2.0), Cue("fixture", 0, 0.0)])
     assert unsure.doubtful and unsure.agree
+    assert (verdict.doubt, torn.doubt, unsure.doubt) == (None, "end", "end")
+
+
+def test_a_taper_alone_against_two_sure_cues_is_its_own_doubt():
+    """Glove 210's glove_006 (fresh sweep): taper 16.4 one way, fixture 12.3 and motion 9.6 the other; the
+    end was the fixture's and the motion's, the frame 5.6 degrees off. Still doubtful, named for the taper."""
+    outvoted = decide([Cue("taper", 1, 16.4), Cue("fixture", -1, 12.3), Cue("motion", -1, 9.6)])
+    assert not outvoted.low_end_clamped and outvoted.doubtful and outvoted.doubt == "taper"
+    # one sure cue for the verdict is not two: the end stays in doubt
+    assert decide([Cue("taper", 1, 5.0), Cue("fixture", -1, 12.3), Cue("motion", -1, 2.0)]).doubt == "end"
+    # two sure cues against the taper whose sum barely clears it: no cue is sure of the end
+    assert decide([Cue("taper", 1, 10.0), Cue("fixture", -1, 3.0), Cue("motion", -1, 9.0)]).doubt == "end"
+    # the fixture alone against the taper and the motion: not the taper's doubt
+    assert decide([Cue("taper", 1, 5.0), Cue("fixture", -1, 12.3), Cue("motion", 1, 9.6)]).doubt == "end"
 
 
 def test_the_scan_follows_the_moving_half_and_finds_the_end_that_stays():

@@ -41,6 +41,8 @@ NOTES = ("mask_area", "tracks")  # said, but not a doubt on the recording (see t
 REASONS = {
     "axis": "object frame: the tissue's axis fits disagree (an occluder's depth may have turned it)",
     "end": "object frame: the cues disagree on, or cannot tell, which end is clamped (Z may be reversed)",
+    "taper": "object frame: the tissue's taper points the other way than the clamp and the grasper's motion, "
+             "which agree on the clamped end (the axis may be turned)",
     "mask_edges": "mask: its outline mostly off depth steps (it may have grown onto the bed)",
     "mask_area": "mask: its area changes more than {factor:g}x from the first frame's",
     "tracks": "tracks: {kept:.0%} of the points are still followed at the end",

@@ -68,6 +68,23 @@ class EndDecision:
         """True when no cue is sure of the end, or a sure cue says the other end."""
         return self.margin < STRONG or not self.agree
 
+    @property
+    def doubt(self) -> str | None:
+        """Why the end is doubtful (None: it is not). `taper` when the taper, however sure, is the one sure cue
+        against two or more sure cues that agree (and the sum still clears STRONG): the end is theirs, and
+        what disagrees is the silhouette's width along this axis. On the fresh sweeps' 256 recordings (colon
+        101-116, glove 209-212) that happened 8 times: the end was right all 8 times, the axis 4.8-8.7 degrees
+        off in 4 and 10.5-19.3 in 4 (docs/results.md, "Which cue was right"). `end` otherwise: no cue sure, or
+        the sure cues split without two agreeing against one, where Z may be reversed."""
+        if not self.doubtful:
+            return None
+        sure = [c for c in self.cues if c.weight != 0 and c.strength >= STRONG]
+        against = [c for c in sure if (c.weight > 0) != self.low_end_clamped]
+        backing = [c for c in sure if (c.weight > 0) == self.low_end_clamped]
+        if self.margin >= STRONG and [c.name for c in against] == ["taper"] and len(backing) >= 2:
+            return "taper"
+        return "end"
+
     def to_dict(self) -> dict:
         return {"low_end_clamped": self.low_end_clamped, "margin": round(self.margin, 2), "agree": self.agree,
                 "cues": {c.name: c.to_dict() for c in self.cues}}

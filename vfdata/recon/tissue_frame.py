@@ -81,7 +81,7 @@ def tissue_frame(image_bgr: np.ndarray, mask: np.ndarray, depth_mm: np.ndarray, 
               "clean_frontal": tissue_cloud(depth_mm, clean_mask & frontal, camera)}
     axis, axis_diag = chosen_axis(clouds)
     decision = end_decision(axis, image_bgr, mask, cloud_mm, camera, motion)
-    doubtful = [reason for reason, doubt in (("axis", axis_diag["axis_doubtful"]), ("end", decision.doubtful))
+    doubtful = [reason for reason, doubt in (("axis", axis_diag["axis_doubtful"]), (decision.doubt, decision.doubtful))
                 if doubt]
     return frame_on_axis(axis, cloud_mm, up, decision.low_end_clamped,
                          diagnostics={**axis_diag, "end": decision.to_dict(), "doubtful": doubtful})
