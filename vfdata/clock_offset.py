@@ -90,13 +90,6 @@ def motion_features(flow: np.ndarray, region: tuple[int, int, int, int] | None =
     return np.concatenate(cells).astype(np.float64)
 
 
-def image_motion(images: Iterable[np.ndarray], region: tuple[int, int, int, int] | None = None,
-                 grid: int = GRID) -> np.ndarray:
-    """(F - 1, 2 * (grid**2 + 1)) motion features (`motion_features`) of each pair of consecutive images."""
-    rows = [motion_features(flow, region, grid) for flow in flows(images)]
-    return np.asarray(rows, dtype=np.float64).reshape(len(rows), 2 * (grid * grid + 1))
-
-
 def coarser(motion: np.ndarray, grid: int, to: int) -> np.ndarray:
     """Motion features of a grid x grid region on a `to` x `to` grid (`to` divides `grid`): the means of
     the cells each coarse cell holds (1: the region's mean alone)."""

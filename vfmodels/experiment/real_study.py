@@ -50,7 +50,7 @@ def _one_recording(manifest) -> tuple[Path, Path, dict[str, tuple[int, int]]]:
     return entry.mcap, derived_path(entry, "geometry"), splits
 
 
-def network_metrics(out: Path, force_by_time: dict[int, np.ndarray]) -> tuple[dict, dict]:
+def network_metrics(out: Path) -> tuple[dict, dict]:
     """Test metrics (with MAE) and predictions of every network run under OUT/runs (seed 0)."""
     metrics, predictions = {}, {}
     for path in sorted(out.glob("runs/*/seed0/predictions.npz")):
@@ -162,7 +162,7 @@ def run_study(manifest_path: str | Path, out: str | Path, tracker_options: dict 
     temporal, temporal_pred = run_baselines(features, force, temporal_indices(splits))
     randomly, _ = run_baselines(features, force, random_indices(count))
     time_to_frame = {int(t): i for i, t in enumerate(rec.frame_times_ns)}
-    networks, network_pred = network_metrics(out, time_to_frame)
+    networks, network_pred = network_metrics(out)
     test = np.arange(*splits["test"])
     temporal = {**networks, **temporal}
     # What the unseen peak costs: the same test frames less those whose force lies outside every
