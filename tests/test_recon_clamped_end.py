@@ -121,3 +121,22 @@ def test_the_scan_follows_the_moving_half_and_finds_the_end_that_stays():
     cue = motion_cue(points, visible, np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 100.0]))
     assert cue.vote == 1 and cue.strength > STRONG  # the clamp at low x, the left
     assert scan_stride(742) == 7 and scan_stride(50) == 1
+
+
+def test_the_frame_carries_the_taper_doubt(monkeypatch):
+    """`tissue_frame` writes the end decision's own reason into the frame's doubts (what `vfdata process`
+    turns into the recording's verdict): `taper` for a taper outvoted by two sure cues."""
+    from vfdata.calibration import PinholeCamera
+    from vfdata.recon import tissue_frame as module
+    from vfdata.recon.tube_axis import TubeAxis
+
+    axis = TubeAxis(np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 120.0]), 0.0, 100)
+    monkeypatch.setattr(module, "chosen_axis", lambda clouds: (axis, {"axis_doubtful": False}))
+    outvoted = decide([Cue("taper", 1, 16.4), Cue("fixture", -1, 12.3), Cue("motion", -1, 9.6)])
+    monkeypatch.setattr(module, "end_decision", lambda *args: outvoted)
+    x = np.linspace(-40.0, 40.0, 50)
+    cloud = np.stack([x, np.zeros_like(x), np.full_like(x, 120.0)], axis=1)
+    depth = np.full((48, 64), 120.0, np.float32)
+    frame = module.tissue_frame(np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), bool), depth, cloud,
+                                PinholeCamera(60.0, 60.0, 32.0, 24.0, 64, 48))
+    assert frame.diagnostics["doubtful"] == ["taper"] and frame.z_axis @ axis.direction < 0
