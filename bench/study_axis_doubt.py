@@ -15,6 +15,11 @@ differently, all point within `RIVAL_DEG` of the chosen one.
 
     python bench/study_axis_doubt.py /data/sweep/colon_1*/data/colon.manifest.yaml --tracker klt
     python bench/study_axis_doubt.py /data/first_frames/*/glove.manifest.yaml --tracker geometry
+    python bench/study_axis_doubt.py /data/sweep/*/data/*.manifest.yaml --end   # the clamped end's doubts
+
+`--end` prints, for every recording whose clamped end this code's rule doubts (`clamped_end.decide` on the
+stored cues), each cue's vote / strength, the Z error, whether the end is right, and the reason (`end`, or
+`taper` for a taper outvoted by two sure cues): docs/results.md, "Which cue was right".
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sweep import droop_figures  # noqa: E402
 
 from vfdata.manifest import load_manifest  # noqa: E402
+from vfdata.recon.clamped_end import Cue, decide  # noqa: E402
 from vfdata.recon.tissue_frame import (  # noqa: E402
     AXIS_DOUBT_DEG,
     AXIS_DOUBT_RESIDUAL,
@@ -68,7 +74,10 @@ def recording_row(entry, label: str, tracker: str) -> dict | None:
     truth = droop_figures(entry.raw, z_axis)
     true_z = np.asarray(json.loads((entry.raw / "ground_truth" / "object_frame.json").read_text())["rotation"])[:, 2]
     z_err = float(np.degrees(np.arccos(np.clip(z_axis @ true_z, -1, 1))))
-    return {"id": f"{label}/{entry.id}", "split": entry.split, "z_err": z_err,
+    stored = check.get("end", {}).get("cues", {})
+    cues = [Cue(name, c.get("vote", 0.0), c.get("strength", 0.0)) for name, c in stored.items()]
+    return {"id": f"{label}/{entry.id}", "split": entry.split, "z_err": z_err, "end_doubt": decide(cues).doubt,
+            "cues": " ".join(f"{c.name} {c.vote:+.0f}/{c.strength:.1f}" for c in cues),
             "tissue_err": truth["tissue_err_deg"], "residual": best["residual"], "spread": spread,
             "rules": [n for n, on in (("residual", residual), ("rival", rivals), ("tie", tie)) if on] + other,
             "now": now, "proposed": proposed}
@@ -86,6 +95,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("manifests", nargs="+", type=Path)
     parser.add_argument("--tracker", default="klt")
+    parser.add_argument("--end", action="store_true", help="the clamped end's doubts instead of the axis's")
     args = parser.parse_args()
     rows = []
     for manifest in args.manifests:
@@ -94,11 +104,23 @@ def main() -> None:
             row = recording_row(entry, label, args.tracker)
             if row is not None:
                 rows.append(row)
+                if args.end:
+                    if row["end_doubt"]:
+                        print(f"{row['id']:>28} {row['split']:>5}  {row['cues']:42}  Z {row['z_err']:5.1f} deg  end "
+                              f"{'right' if row['z_err'] < 90 else 'REVERSED'}  reason {row['end_doubt']}")
+                    continue
                 if row["now"] or row["proposed"] or row["z_err"] > PROMISE_DEG:
                     print(f"{row['id']:>28} {row['split']:>5}  Z {row['z_err']:5.1f} deg "
                           f"(tissue {row['tissue_err']:5.1f})  residual {row['residual']:.3f}  "
                           f"fits within {row['spread']:5.1f} deg  rules {','.join(row['rules']) or '-'}  "
                           f"stored {'DOUBT' if row['now'] else 'ok'}  code {'DOUBT' if row['proposed'] else 'ok'}")
+    if args.end:
+        doubted = [r for r in rows if r["end_doubt"]]
+        taper = [r for r in doubted if r["end_doubt"] == "taper"]
+        print(f"{len(doubted)} of {len(rows)} recordings' ends doubted; reversed among them "
+              f"{sum(r['z_err'] >= 90 for r in doubted)}; reason taper {len(taper)} (beyond 10 deg "
+              f"{sum(r['z_err'] > PROMISE_DEG for r in taper)})")
+        return
     print(summary(rows, "now", "as stored"))
     print(summary(rows, "proposed", "this code's rule"))
 
