@@ -76,6 +76,13 @@ def test_not_a_model_is_one_line(tmp_path, capsys):
     torch.save({"state_dict": {}}, tmp_path / "plain.ckpt")
     with pytest.raises(InputError, match="plain.ckpt: not a ForceRegressor checkpoint"):
         read_model_card(tmp_path / "plain.ckpt")
+    torch.save({"force_model": {"band": {"train_min_n": "low", "train_max_n": [1, 2, 3]}},
+                "datamodule_hyper_parameters": [1, 2]}, tmp_path / "odd.ckpt")
+    with pytest.raises(InputError, match="odd.ckpt: damaged checkpoint"):
+        read_model_card(tmp_path / "odd.ckpt")
+    torch.save({"force_model": {}, "ForceDataModule": {"recordings": ["a"]}}, tmp_path / "odd2.ckpt")
+    with pytest.raises(InputError, match="odd2.ckpt: damaged checkpoint.*recordings"):
+        read_model_card(tmp_path / "odd2.ckpt")
     _run_folder(tmp_path)
     assert main(["info", str(tmp_path / "run")]) == 1
     assert "`vfdata model-info` describes models" in capsys.readouterr().err

@@ -27,10 +27,10 @@ def checkpoint_of(path: str | Path) -> tuple[Path, Path | None]:
     """The checkpoint a path names (a .ckpt, or a run folder's best) and its run folder (the one holding
     `checkpoints/`, None for a lone file)."""
     path = Path(path)
+    if path.is_dir() and (path / "checkpoints").is_dir():
+        return best_checkpoint(path / "checkpoints"), path
     if path.is_dir():
-        run = path if (path / "checkpoints").is_dir() else None
-        return best_checkpoint(path / "checkpoints" if run else path), run or (
-            path.parent if path.name == "checkpoints" else None)
+        return best_checkpoint(path), path.parent if path.name == "checkpoints" else None
     if not path.is_file():
         raise InputError(path, "checkpoint not found")
     return path, path.parent.parent if path.parent.name == "checkpoints" else None
@@ -38,16 +38,27 @@ def checkpoint_of(path: str | Path) -> tuple[Path, Path | None]:
 
 def model_card(checkpoint: dict[str, Any], path: Path, run: Path | None = None) -> dict[str, Any]:
     """The card of a checkpoint's contents (`read_checkpoint`): plain values, JSON-ready. `run` adds the
-    run folder's test figures (its metrics.json) when there are any."""
-    force_model = checkpoint.get("force_model")
-    if not isinstance(force_model, dict):
+    run folder's test figures (its metrics.json) when there are any. An InputError naming the file when
+    it is not a ForceRegressor checkpoint or its entries are not what training writes."""
+    if not isinstance(checkpoint.get("force_model"), dict):
         raise InputError(path, "not a ForceRegressor checkpoint (no 'force_model' entry)")
+    try:
+        return _card(checkpoint, path, run)
+    except (AttributeError, TypeError, ValueError) as exc:  # entries of another shape: a damaged file
+        raise InputError(path, f"damaged checkpoint: an entry is not what training writes ({exc})") from None
+
+
+def _card(checkpoint: dict[str, Any], path: Path, run: Path | None) -> dict[str, Any]:
+    force_model = checkpoint["force_model"]
     data = checkpoint.get("datamodule_hyper_parameters") or {}
     spec = data.get("spec") or {}
     state = checkpoint.get("ForceDataModule") or {}
     weights = checkpoint.get("state_dict") or {}
     band = force_model.get("band") or {}
-    card = {
+    named = state.get("recordings")
+    if named is not None and not (isinstance(named, dict) and all(isinstance(ids, list) for ids in named.values())):
+        raise ValueError(f"recordings {named!r} are not lists of ids by split")
+    return {
         "file": str(path),
         "size_mb": round(path.stat().st_size / 1e6, 2),
         "model": {
@@ -63,8 +74,8 @@ def model_card(checkpoint: dict[str, Any], path: Path, run: Path | None = None) 
             "lightning": checkpoint.get("pytorch-lightning_version"),
             **{k: v for k, v in (checkpoint.get("hyper_parameters") or {}).items() if k in ("lr", "weight_decay")},
             "manifest": data.get("manifest"),
-            "recordings": state.get("recordings") or _manifest_recordings(data.get("manifest")),
-            "recordings_from": "checkpoint" if state.get("recordings") else "manifest",
+            "recordings": named or _manifest_recordings(data.get("manifest")),
+            "recordings_from": "checkpoint" if named else "manifest",
         },
         "inputs": {
             "tracker": state.get("tracker"),
@@ -76,7 +87,6 @@ def model_card(checkpoint: dict[str, Any], path: Path, run: Path | None = None) 
         "tissue_lean_deg": state.get("tissue_lean_deg"),
         "test": _test_figures(run),
     }
-    return card
 
 
 def card_text(card: dict[str, Any]) -> str:
