@@ -17,6 +17,7 @@ from vfdata.clips.datamodule import ForceDataModule
 from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.clips.tokens import clip_starts, point_features, segments, tilt_about, tilt_tokens, velocities
+from vfdata.confidence import Confidence
 from vfdata.errors import InputError, VisionForceError
 from vfdata.manifest import load_manifest
 from vfdata.recording import McapWriter, layout
@@ -55,8 +56,9 @@ def clips(entries, cache_dir=None, **spec) -> ForceClipDataset:
 
 
 def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True, hidden: tuple = (),
-                    tracker: str | None = None) -> None:
-    """<rid>.mcap with a 1 kHz force ramp fx = t (s), fy = 2, fz = -t; <rid>.processed.mcap with tracks."""
+                    tracker: str | None = None, doubtful: tuple[str, ...] = ()) -> None:
+    """<rid>.mcap with a 1 kHz force ramp fx = t (s), fy = 2, fz = -t; <rid>.processed.mcap with tracks
+    (and, with `doubtful` reasons, the verdict `vfdata process` writes for them)."""
     t_force = np.arange(times[0] - 5 * PERIOD, times[-1] + 5 * PERIOD, 1_000_000, dtype=np.int64)
     with McapWriter(root / f"{rid}.mcap", separate_topics=(layout.WRENCH,)) as w:
         for t in t_force:
@@ -73,6 +75,8 @@ def write_recording(root: Path, rid: str, times: np.ndarray, tracks: bool = True
                 w.write(layout.TRACKING_POINTS, tracks_cloud(pts[i], visible, int(t)))
         frame = {"rotation": ROTATION.tolist(), "origin": ORIGIN.tolist()}
         names = {"tracker": tracker} if tracker else {}
+        if doubtful:
+            names.update(Confidence(list(doubtful)).metadata())
         w.add_metadata(layout.DERIVED_METADATA, {"object_frame": json.dumps(frame), **names})
 
 
@@ -485,7 +489,7 @@ def test_the_one_line_ways_in_and_denormalise(dataset_root):
 def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path):
     """The data module's state (Lightning saves it in every checkpoint) names the tracker of the training
     recordings' derived files, so prediction can track the same way (nothing when they do not say), and
-    the recordings trained and validated on (`vfdata model-info`)."""
+    the recordings trained and validated on, and those of them judged doubtful (`vfdata model-info`)."""
     write_recording(tmp_path, "a", frame_times(40), tracker="klt")
     write_recording(tmp_path, "b", frame_times(23), tracker="geometry")
     write_recording(tmp_path, "c", frame_times(18))
@@ -498,6 +502,10 @@ def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path)
         "tracker": "klt", "recordings": {"train": ["a"], "val": ["b"]}}
     shuffled = ForceDataModule.from_manifest(manifest, progress=False, random_split=0.2)
     assert shuffled.state_dict()["recordings"] == {"shuffled": ["a", "b", "c"]}
+    write_recording(tmp_path, "d", frame_times(20), tracker="klt", doubtful=("end",))
+    judged = write_manifest(tmp_path, [{"id": "a", "orientation_deg": 0, "split": "train"},
+                                       {"id": "d", "orientation_deg": 0, "split": "val"}])
+    assert ForceDataModule.from_manifest(judged, progress=False).state_dict()["doubtful"] == {"d": ["end"]}
     unnamed = write_manifest(tmp_path, [{"id": "c", "orientation_deg": 0, "split": "train"}])
     assert ForceDataModule.from_manifest(unnamed, progress=False).state_dict() == {
         "recordings": {"train": ["c"], "val": []}}

@@ -36,7 +36,10 @@ def _run_folder(tmp_path, features: str = "disp_vel", recordings: dict | None = 
 
 
 def test_the_card_says_what_the_model_expects_and_has_seen(tmp_path, capsys):
-    _run_folder(tmp_path, recordings={"train": ["colon_001", "colon_002"], "val": ["colon_005"]})
+    ckpt = _run_folder(tmp_path, recordings={"train": ["colon_001", "colon_002"], "val": ["colon_005"]})
+    state = torch.load(ckpt, weights_only=True)
+    state["ForceDataModule"]["doubtful"] = {"colon_002": ["taper"]}
+    torch.save(state, ckpt)
     assert main(["model-info", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
     assert "forces averaged over 2 symmetry views" in out
@@ -46,6 +49,7 @@ def test_the_card_says_what_the_model_expects_and_has_seen(tmp_path, capsys):
     assert "Fx -3.0..+3.0, Fy -4.0..+4.0, Fz -1.0..+9.5 N" in out
     assert "90% band calibrated on 480 validation frames (scale Fx 0.50, Fy 0.60, Fz 1.20 N)" in out
     assert "hang 4.5-6.1 deg below level" in out
+    assert "although `vfdata process` judged them doubtful: colon_002 (taper)" in out
     assert "RMSE 0.861 N, R2 0.790 over 398 frames (visionforce, seed 0)" in out
     assert "4 epochs, 120 steps" in out and "runs in `vfdata predict` and `vfdata live`" in out
 

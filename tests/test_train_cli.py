@@ -156,7 +156,7 @@ def test_point_configs_fast_dev_run_on_tracks(config, tmp_path):
     assert cli.model.model.config["in_features"] == cli.datamodule.spec.channels
 
 
-def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path):
+def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path, capsys):
     """configs/visionforce.yaml as a user runs it, one epoch on tiny recordings: the checkpoint keeps what
     prediction needs (the model, its symmetry views, the spec, the tracker), and `train.py test` on it
     logs the RMSE of its forces, which we compute here from the saved model."""
@@ -167,8 +167,8 @@ def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path)
     from vfmodels.training.model_card import read_model_card
     from vfmodels.training.regressor import ForceRegressor
 
-    for rid, frames in (("a", 24), ("b", 20), ("c", 20)):
-        write_recording(tmp_path, rid, frame_times(frames), tracker="klt")
+    for rid, frames in (("a", 24), ("b", 20), ("c", 20)):  # b judged doubtful: the user trains on it anyway
+        write_recording(tmp_path, rid, frame_times(frames), tracker="klt", doubtful=("end",) if rid == "b" else ())
     manifest = write_manifest(tmp_path, [{"id": "a", "split": "train"}, {"id": "b", "split": "val"},
                                          {"id": "c", "orientation_deg": 30, "split": "test"}])
     run = [f"--config={ROOT / 'configs' / 'visionforce.yaml'}", f"--data.manifest={manifest}", "--data.cache_dir=null",
@@ -176,14 +176,19 @@ def test_the_visionforce_config_fits_one_epoch_and_tests_what_it_saved(tmp_path)
            "--trainer.enable_progress_bar=false"]
     cli = _fit([*run, "--trainer.max_epochs=1"])
     assert cli.trainer.current_epoch == 1
+    warned = [line for line in capsys.readouterr().err.splitlines() if line.startswith("train.py: warning: ")]
+    assert len(warned) == 1 and "judged doubtful: b (end);" in warned[0]
+
     best = best_checkpoint(tmp_path / "run" / "checkpoints")
     state = torch.load(best, weights_only=True)
     assert state["force_model"]["symmetry_turns"] == 1 and state["force_model"]["init_args"]["in_features"] == 12
     assert state["datamodule_hyper_parameters"]["spec"]["features"] == "polar_z_disp_vel"
-    assert state["ForceDataModule"] == {"tracker": "klt", "recordings": {"train": ["a"], "val": ["b"]}}
+    assert state["ForceDataModule"] == {"tracker": "klt", "recordings": {"train": ["a"], "val": ["b"]},
+                                        "doubtful": {"b": ["end"]}}
     card = read_model_card(tmp_path / "run")  # what `vfdata model-info` prints of it
     assert card["file"] == str(best) and card["training"]["recordings"] == {"train": ["a"], "val": ["b"]}
     assert card["band"]["frames"] == 20 and card["inputs"]["tracker"] == "klt"
+    assert card["training"]["doubtful"] == {"b": ["end"]}
 
     train.main(["test", *run, f"--ckpt_path={best}"])
     logged = (tmp_path / "run" / "csv" / "version_1" / "metrics.csv").read_text().splitlines()

@@ -152,8 +152,26 @@ class ForceDataModule(L.LightningDataModule):
         # The recordings trained and validated on, by id, so that a lab given only the file can read what
         # the model has seen (`vfdata model-info`); a random split names them all.
         state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg,
-                 "recordings": self.recording_ids}
+                 "recordings": self.recording_ids, "doubtful": self.doubtful_recordings or None}
         return {k: v for k, v in state.items() if v is not None}
+
+    @functools.cached_property
+    def doubtful_recordings(self) -> dict[str, list[str]]:
+        """The training and validation recordings `vfdata process` judged doubtful, by id, with its reasons
+        (`vfdata.confidence`): their object frame may be wrong, so their labels may be too. `vfdata
+        experiment` leaves them out; `train.py fit` warns and every checkpoint names them."""
+        if self.spec.source != "processed":
+            return {}
+        entries = list(self.manifest.entries) if self.random_split else [
+            e for e in self.manifest.entries if e.split in ("train", "val")]
+        doubtful = {}
+        for e in entries:
+            if e.id not in doubtful and e.processed.is_file():
+                with DerivedRecording.open(e.processed) as derived:
+                    verdict = derived.meta.confidence
+                if verdict is not None and verdict.doubtful:
+                    doubtful[e.id] = list(verdict.reasons)
+        return doubtful
 
     @property
     def recording_ids(self) -> dict[str, list[str]]:

@@ -56,8 +56,10 @@ def _card(checkpoint: dict[str, Any], path: Path, run: Path | None) -> dict[str,
     weights = checkpoint.get("state_dict") or {}
     band = force_model.get("band") or {}
     named = state.get("recordings")
-    if named is not None and not (isinstance(named, dict) and all(isinstance(ids, list) for ids in named.values())):
-        raise ValueError(f"recordings {named!r} are not lists of ids by split")
+    for key in ("recordings", "doubtful"):
+        value = state.get(key)
+        if value is not None and not (isinstance(value, dict) and all(isinstance(v, list) for v in value.values())):
+            raise ValueError(f"{key} {value!r} are not lists by split or recording")
     return {
         "file": str(path),
         "size_mb": round(path.stat().st_size / 1e6, 2),
@@ -76,6 +78,7 @@ def _card(checkpoint: dict[str, Any], path: Path, run: Path | None) -> dict[str,
             "manifest": data.get("manifest"),
             "recordings": named or _manifest_recordings(data.get("manifest")),
             "recordings_from": "checkpoint" if named else "manifest",
+            "doubtful": state.get("doubtful"),
         },
         "inputs": {
             "tracker": state.get("tracker"),
@@ -109,6 +112,9 @@ def card_text(card: dict[str, Any]) -> str:
                   for split, ids in recordings.items()]
     else:
         lines.append("recordings: not named (a checkpoint from before 2026-12-07, its manifest gone)")
+    if training.get("doubtful"):
+        lines.append("doubtful:   trained or validated on although `vfdata process` judged them doubtful: " + ", ".join(
+            f"{rid} ({', '.join(reasons)})" for rid, reasons in training["doubtful"].items()))
     if training.get("manifest"):
         lines.append(f"manifest:   {training['manifest']}")
     if inputs.get("input") == "tracks":

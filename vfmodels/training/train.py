@@ -212,6 +212,12 @@ class ForceCLI(LightningCLI):
     def before_fit(self) -> None:
         self._resolve_checkpoint()
         adopt_normalisation(self.model, self.datamodule)
+        doubtful = getattr(self.datamodule, "doubtful_recordings", None)
+        if doubtful and self.trainer.is_global_zero:  # `vfdata experiment` leaves them out; here the user chose
+            named = ", ".join(f"{rid} ({', '.join(reasons)})" for rid, reasons in doubtful.items())
+            print(f"train.py: warning: {self.datamodule.manifest.path}: training and validation include recordings "
+                  f"`vfdata process` judged doubtful: {named}; their object frame, and so their labels, may be wrong "
+                  "(docs/reconstruction.md, \"How sure\")", file=sys.stderr, flush=True)
 
     def after_fit(self) -> None:
         if self.trainer.is_global_zero and not self.trainer.fast_dev_run:
