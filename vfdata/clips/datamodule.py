@@ -135,29 +135,27 @@ class ForceDataModule(L.LightningDataModule):
         if self.spec.source != "processed":
             return None
         entries = list(self.manifest.entries) if self.random_split else self.manifest.split("train")
-        leans, doubtful = {}, set()
+        leans = {}
         for e in entries:
             if e.processed.is_file() and e.mcap.is_file() and e.id not in leans:
                 with DerivedRecording.open(e.processed) as derived:
                     meta, frame = derived.meta, derived.object_frame
                 leans[e.id] = ("train", recording_lean(meta, frame, e.mcap))
-                if meta.confidence is not None and meta.confidence.doubtful:
-                    doubtful.add(e.id)
-        return lean_report(leans, doubtful)["training_deg"]
+        return lean_report(leans, set(self.doubtful_recordings))["training_deg"]
 
     def state_dict(self) -> dict[str, Any]:
         # Lightning stores this in every checkpoint: prediction tracks a recording the way the
         # training recordings were tracked (vfmodels.inference.trained_model) and records how
         # the tissue hangs against the training tissues (TrainedModel.lean_deg).
-        # The recordings trained and validated on, by id, so that a lab given only the file can read what
-        # the model has seen (`vfdata model-info`); a random split names them all.
+        # The recordings trained and validated on, by id, and those of them judged doubtful, so that a lab
+        # given only the file can read what the model has seen (`vfdata model-info`).
         state = {"tracker": self.training_tracker, "tissue_lean_deg": self.training_lean_deg,
                  "recordings": self.recording_ids, "doubtful": self.doubtful_recordings or None}
         return {k: v for k, v in state.items() if v is not None}
 
     @functools.cached_property
     def doubtful_recordings(self) -> dict[str, list[str]]:
-        """The training and validation recordings `vfdata process` judged doubtful, by id, with its reasons
+        """The training and validation recordings `vfdata process` judged doubtful, by id, with their reasons
         (`vfdata.confidence`): their object frame may be wrong, so their labels may be too. `vfdata
         experiment` leaves them out; `train.py fit` warns and every checkpoint names them."""
         if self.spec.source != "processed":
