@@ -509,3 +509,17 @@ def test_a_checkpoint_remembers_the_tracker_of_the_training_recordings(tmp_path)
     unnamed = write_manifest(tmp_path, [{"id": "c", "orientation_deg": 0, "split": "train"}])
     assert ForceDataModule.from_manifest(unnamed, progress=False).state_dict() == {
         "recordings": {"train": ["c"], "val": []}}
+
+
+def test_the_training_lean_leaves_doubtful_tissues_out(tmp_path, monkeypatch):
+    """The training tissues' lean (every checkpoint keeps it) is the range of the training recordings that
+    `vfdata process` did not doubt: a doubtful one's frame, so its lean, may be wrong."""
+    import vfdata.clips.datamodule as datamodule
+
+    leans = {"a": 4.0, "b": 5.0, "c": 6.0, "d": 20.0}
+    for rid in leans:
+        write_recording(tmp_path, rid, frame_times(20), tracker="klt", doubtful=("axis",) if rid == "d" else ())
+    monkeypatch.setattr(datamodule, "recording_lean", lambda meta, frame, mcap: leans[Path(mcap).stem])
+    manifest = write_manifest(tmp_path, [{"id": rid, "orientation_deg": 0, "split": "train"} for rid in leans])
+    module = ForceDataModule.from_manifest(manifest, progress=False)
+    assert module.training_lean_deg == [4.0, 6.0] and module.doubtful_recordings == {"d": ["axis"]}
