@@ -1,8 +1,10 @@
 """`vfdata model-info CKPT`: what a trained model is and what it has seen, from its checkpoint alone.
 
-Prints the card of `vfmodels.training.model_card` (network, inputs, recordings trained and validated on,
-the force range training covered, the band's calibration, the training tissues' lean, the run's test
-figures) and whether `vfdata predict` and `vfdata live` can run it; `--json` writes the card as JSON."""
+Prints what the checkpoint says of the model: the network, the inputs it expects, the recordings it was
+trained and validated on (and any of them judged doubtful), the force range training covered (N), the
+band's calibration, how low the training tissues hang, the run's test figures, and whether `vfdata
+predict` and `vfdata live` can run it. `--json` writes the same card as JSON
+(`vfmodels.training.model_card`)."""
 
 from __future__ import annotations
 
