@@ -17,20 +17,20 @@ SPEC = {"input": "tracks", "features": "disp_vel", "frame": "object", "num_point
         "stride": 4, "fps": 30.0}
 
 
-def _run_folder(tmp_path, features: str = "disp_vel", recordings: dict | None = None):
+def _run_folder(tmp_path, features: str = "disp_vel", recordings: dict | None = None, run: str = "run"):
     """A run folder as `vfdata experiment` leaves it: checkpoints/ with a best checkpoint, and metrics.json."""
     reg = _regressor(in_features=6)
     reg.band_calibration = BandCalibration(scale=(0.5, 0.6, 1.2), weight=(0.0, 0.0, 0.0), frames=480,
                                            train_min_n=(-3.0, -4.0, -1.0), train_max_n=(3.0, 4.0, 9.5))
-    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
-    ckpt = _save_checkpoint(reg, tmp_path / "run" / "checkpoints" / "epoch003-val_loss0.50000.ckpt",
+    (tmp_path / run / "checkpoints").mkdir(parents=True)
+    ckpt = _save_checkpoint(reg, tmp_path / run / "checkpoints" / "epoch003-val_loss0.50000.ckpt",
                             {"manifest": str(tmp_path / "gone.manifest.yaml"), "spec": {**SPEC, "features": features}})
     state = torch.load(ckpt, weights_only=True)
     state["ForceDataModule"] = {"tracker": "klt", "tissue_lean_deg": [4.5, 6.1],
                                 **({"recordings": recordings} if recordings else {})}
     state.update(epoch=3, global_step=120)
     torch.save(state, ckpt)
-    (tmp_path / "run" / "metrics.json").write_text(json.dumps(
+    (tmp_path / run / "metrics.json").write_text(json.dumps(
         {"variant": "visionforce", "seed": 0, "test_frames": 398, "pooled": {"rmse": 0.861, "r2": 0.79}}))
     return ckpt
 
@@ -52,6 +52,23 @@ def test_the_card_says_what_the_model_expects_and_has_seen(tmp_path, capsys):
     assert "although `vfdata process` judged them doubtful: colon_002 (taper)" in out
     assert "RMSE 0.861 N, R2 0.790 over 398 frames (visionforce, seed 0)" in out
     assert "4 epochs, 120 steps" in out and "runs in `vfdata predict` and `vfdata live`" in out
+
+
+def test_an_experiments_model_names_what_it_left_out(tmp_path, capsys):
+    """In `vfdata experiment`'s folder the card adds the recordings the experiment left out as doubtful (its
+    doubtful.json, for the tracker the model was trained on)."""
+    _run_folder(tmp_path, recordings={"train": ["colon_001"], "val": ["colon_005"]}, run="out/runs/visionforce/seed0")
+    (tmp_path / "out" / "doubtful.json").write_text(json.dumps([
+        {"id": "colon_000", "split": "train", "tracker": "klt", "reasons": ["end"], "left_out": True},
+        {"id": "colon_007", "split": "test", "tracker": "klt", "reasons": ["axis"], "left_out": False},
+        {"id": "colon_002", "split": "train", "tracker": "geometry", "reasons": ["axis"], "left_out": True}]))
+    assert main(["model-info", str(tmp_path / "out" / "runs" / "visionforce" / "seed0")]) == 0
+    out = capsys.readouterr().out
+    assert "left out:   colon_000 (train; end): judged doubtful" in out and "colon_007" not in out
+    assert "colon_002" not in out
+    (tmp_path / "out" / "doubtful.json").write_text("{not json")
+    assert main(["model-info", str(tmp_path / "out" / "runs" / "visionforce" / "seed0")]) == 1
+    assert "doubtful.json: not the doubtful report" in capsys.readouterr().err
 
 
 def test_json_card_and_a_model_predict_cannot_run(tmp_path, capsys):
