@@ -92,6 +92,10 @@ class Manifest:
     path: Path
     entries: tuple[ManifestEntry, ...]
 
+    def ids(self, splits: tuple[str, ...] = ("train", "val")) -> dict[str, list[str]]:
+        """The recordings' ids of each of `splits`, in file order (an empty list for a split without any)."""
+        return {split: [e.id for e in self.entries if e.split == split] for split in splits}
+
     def split(self, split: str) -> list[ManifestEntry]:
         """The recordings of one split (train, val or test); an InputError when there are none."""
         if split not in SPLITS:

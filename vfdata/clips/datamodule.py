@@ -16,7 +16,7 @@ from vfdata.clips.dataset import ForceClipDataset, collate_clips
 from vfdata.clips.spec import ClipSpec
 from vfdata.errors import InputError
 from vfdata.manifest import Manifest, check_guard_gaps, load_manifest
-from vfdata.recording.derived import DerivedRecording, read_tracker_name
+from vfdata.recording.derived import DerivedRecording, read_confidence, read_tracker_name
 from vfdata.split_forces import training_range
 from vfdata.tissue_lean import lean_report, recording_lean
 
@@ -162,14 +162,8 @@ class ForceDataModule(L.LightningDataModule):
             return {}
         entries = list(self.manifest.entries) if self.random_split else [
             e for e in self.manifest.entries if e.split in ("train", "val")]
-        doubtful = {}
-        for e in entries:
-            if e.id not in doubtful and e.processed.is_file():
-                with DerivedRecording.open(e.processed) as derived:
-                    verdict = derived.meta.confidence
-                if verdict is not None and verdict.doubtful:
-                    doubtful[e.id] = list(verdict.reasons)
-        return doubtful
+        verdicts = {e.id: read_confidence(e.processed) for e in entries if e.processed.is_file()}
+        return {rid: list(v.reasons) for rid, v in verdicts.items() if v is not None and v.doubtful}
 
     @property
     def recording_ids(self) -> dict[str, list[str]]:
@@ -177,7 +171,7 @@ class ForceDataModule(L.LightningDataModule):
         {"shuffled": [...]} with a random split (the clips of all of them shuffled into train, val, test)."""
         if self.random_split:
             return {"shuffled": list(dict.fromkeys(e.id for e in self.manifest.entries))}
-        return {split: [e.id for e in self.manifest.entries if e.split == split] for split in ("train", "val")}
+        return self.manifest.ids(("train", "val"))
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
         pass  # nothing to restore: the tracker is read by prediction, not by training

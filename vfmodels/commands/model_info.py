@@ -25,13 +25,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # here, not at the top: checkpoints need torch; `vfdata --help` starts without it
+    from vfmodels.experiment.report import read_doubtful
     from vfmodels.inference.trained_model import TrainedModel
-    from vfmodels.training.model_card import card_text, read_model_card
+    from vfmodels.training.checkpoint import read_checkpoint
+    from vfmodels.training.model_card import card_text, checkpoint_of, model_card
 
-    card = read_model_card(args.ckpt)
-    card["training"]["left_out"] = experiment_left_out(Path(card["file"]), card["inputs"].get("tracker"))
+    ckpt, run_dir = checkpoint_of(args.ckpt)
+    checkpoint = read_checkpoint(ckpt)  # once: the card and the frame-by-frame check read the same contents
+    card = model_card(checkpoint, ckpt, run_dir)
+    tracker = card["inputs"].get("tracker")
+    card["training"]["left_out"] = [
+        {"id": str(d["id"]), "split": str(d["split"]), "reasons": [str(r) for r in d["reasons"]]}
+        for d in read_doubtful(experiment_folder(ckpt)) if d.get("left_out") and d.get("tracker") in (tracker, None)]
     try:
-        TrainedModel.load(card["file"])
+        TrainedModel.load(ckpt, checkpoint=checkpoint)
         card["runs_frame_by_frame"] = True
     except InputError as exc:  # a model predict and live cannot run: say why, it is still a model
         card["runs_frame_by_frame"] = False
@@ -42,24 +49,16 @@ def run(args: argparse.Namespace) -> int:
     print(card_text(card))
     if card["training"]["left_out"]:
         print(f"{'left out:':12}" + ", ".join(f"{d['id']} ({d['split']}; {', '.join(d['reasons'])})"
-                                       for d in card["training"]["left_out"])
+                                             for d in card["training"]["left_out"])
               + ": judged doubtful, so `vfdata experiment` did not train or validate on them")
     print("predict:    " + ("runs in `vfdata predict` and `vfdata live`" if card["runs_frame_by_frame"]
                             else f"not in `vfdata predict` or `vfdata live`: {card['why_not_frame_by_frame']}"))
     return 0
 
 
-def experiment_left_out(ckpt: Path, tracker: str | None) -> list[dict]:
-    """The recordings `vfdata experiment` left out of this model's training and validation as doubtful, when
-    the checkpoint lies in an experiment's folder (OUT/runs/<variant>/seed<k>/checkpoints/, beside OUT's
-    doubtful.json); [] otherwise. The checkpoint names what it trained on; the experiment, what it left out."""
+def experiment_folder(ckpt: Path) -> Path:
+    """The experiment's OUT a checkpoint lies in (OUT/runs/<variant>/seed<k>/checkpoints/, `runs.run_folder`),
+    whose doubtful.json says what the experiment left out; the checkpoint's own folder otherwise (none there)."""
     parents = ckpt.resolve().parents
-    if len(parents) < 5 or parents[0].name != "checkpoints" or parents[3].name != "runs":
-        return []
-    report = parents[4] / "doubtful.json"
-    try:
-        entries = json.loads(report.read_text()) if report.is_file() else []
-        return [{"id": str(d["id"]), "split": str(d["split"]), "reasons": [str(r) for r in d["reasons"]]}
-                for d in entries if d.get("left_out") and d.get("tracker") in (tracker, None)]
-    except (ValueError, KeyError, TypeError, AttributeError):
-        raise InputError(report, "not the doubtful report `vfdata experiment` writes") from None
+    inside = len(parents) >= 5 and parents[0].name == "checkpoints" and parents[3].name == "runs"
+    return parents[4] if inside else parents[0]

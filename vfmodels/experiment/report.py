@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from vfdata import metrics as tracking_metrics
+from vfdata.errors import InputError
 from vfdata.manifest import ManifestEntry, load_manifest
 from vfdata.recon.preview import first_frame_preview
 from vfdata.recording import Recording
@@ -314,7 +315,7 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
     # on RGB-D recordings the variants ran as flat tissue (variants.for_depth_only): the labels say so
     variants = list(ALL_VARIANTS.values())
     labels = {v.name: v.label for v in (for_depth_only(variants) if ran.get("flat_tissue") else variants)}
-    doubtful = json.loads((out / "doubtful.json").read_text()) if (out / "doubtful.json").is_file() else []
+    doubtful = read_doubtful(out)
     paths = force_tables(out, runs, data.name, labels, validation_recordings(entries, doubtful)) if runs else {}
     trackers = [t for t in TRACKER_SUFFIX if any(derived_path(e, t).is_file() for e in entries)]
     rows, per_recording = tracking_table(entries, trackers)
@@ -339,6 +340,29 @@ def write_reports(out: str | Path, manifest: str | Path | None = None) -> dict[s
         paths["doubtful.md"] = out / "doubtful.md"
     paths.update(write_lean(out, entries, trackers, doubtful))
     return paths
+
+
+def write_doubtful(out: Path, doubtful: list[dict]) -> Path:
+    """OUT/doubtful.json: the recordings `vfdata process` judged doubtful (`runner.tracker_manifest`: id, split,
+    tracker, reasons, whether left out, figures)."""
+    (out / "doubtful.json").write_text(json.dumps(doubtful, indent=2))
+    return out / "doubtful.json"
+
+
+def read_doubtful(out: Path) -> list[dict]:
+    """OUT/doubtful.json as `write_doubtful` wrote it ([] when there is none); an InputError naming the file
+    when it is not that list."""
+    path = out / "doubtful.json"
+    if not path.is_file():
+        return []
+    try:
+        entries = json.loads(path.read_text())
+        if not (isinstance(entries, list) and all(isinstance(d, dict) and {"id", "split", "reasons"} <= d.keys()
+                                                  for d in entries)):
+            raise ValueError
+    except ValueError:
+        raise InputError(path, "not the doubtful report `vfdata experiment` writes") from None
+    return entries
 
 
 def write_lean(out: Path, entries: list[ManifestEntry], trackers: list[str], doubtful: list[dict]) -> dict[str, Path]:

@@ -38,7 +38,7 @@ from vfdata.recording.derived import read_confidence
 from vfdata.split_forces import manifest_forces, split_warnings, summarise, write_split_report
 from vfdata.threads import set_threads
 from vfmodels.experiment.prepare import any_depth_only, convert_all, derived_path, prepare
-from vfmodels.experiment.report import write_reports
+from vfmodels.experiment.report import write_doubtful, write_reports
 from vfmodels.experiment.ridge_run import run_ridge
 from vfmodels.experiment.runs import run_folder, write_run
 from vfmodels.experiment.variants import ALL_VARIANTS, DEFAULT_VARIANTS, LADDER, Variant, for_depth_only
@@ -227,7 +227,7 @@ def run_experiment(manifest_path: str | Path, out: str | Path, options: Experime
     for d in doubtful:
         log.warning(f"warning: {d['id']} ({d['split']}, {d['tracker']} tracks) is doubtful: "
                     f"{', '.join(d['reasons'])}" + ("; left out of training" if d["left_out"] else ""))
-    (out / "doubtful.json").write_text(json.dumps(doubtful, indent=2))
+    write_doubtful(out, doubtful)
     (out / "experiment.json").write_text(json.dumps({
         "manifest": str(manifest.path), "variants": [v.name for v in variants], "seeds": options.seeds,
         "epochs": options.epochs, "depth": options.depth, "segment": options.segment,

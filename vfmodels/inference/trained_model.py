@@ -37,14 +37,14 @@ class TrainedModel:
     lean_deg: list[float] | None  # [low, high] deg below level of the training tissues (vfdata.tissue_lean)
 
     @classmethod
-    def load(cls, ckpt: str | Path, device: str = "cpu") -> TrainedModel:
+    def load(cls, ckpt: str | Path, device: str = "cpu", checkpoint: dict[str, Any] | None = None) -> TrainedModel:
         """The model of a .ckpt file, or of a run folder's best checkpoint (in its checkpoints/), on `device`
-        (`vfdata.device.resolve_device`); an InputError naming the file when it is not a point model that runs
-        frame by frame."""
+        (`vfdata.device.resolve_device`), from the file's contents when already read (`checkpoint`); an
+        InputError naming the file when it is not a point model that runs frame by frame."""
         path = Path(ckpt)
         if path.is_dir():
             path = best_checkpoint(path / "checkpoints" if (path / "checkpoints").is_dir() else path)
-        checkpoint = read_checkpoint(path)
+        checkpoint = read_checkpoint(path) if checkpoint is None else checkpoint
         regressor = ForceRegressor.load(path, checkpoint=checkpoint)
         if regressor.model.input_key != "tokens":
             raise InputError(path, f"{type(regressor.model).__name__} takes {regressor.model.input_key}, not tracked "

@@ -159,10 +159,10 @@ def _manifest_recordings(manifest: str | None) -> dict[str, list[str]] | None:
     if not manifest or not Path(manifest).is_file():
         return None
     try:
-        entries = load_manifest(manifest).entries
+        manifest = load_manifest(manifest)
     except InputError:
         return None
-    return {split: [e.id for e in entries if e.split == split] for split in ("train", "val")}
+    return manifest.ids(("train", "val"))
 
 
 def _plain(value: Any) -> bool:
