@@ -8,6 +8,13 @@ highlights, weak texture) or it leaves the image; lost points are NaN and never 
 Each frame's 2D positions are lifted to 3D (`lift`) with that frame's depth map (`"depth"`), or by each
 point's own stereo match in the right image of the same pair, triangulated, with the depth map where
 the match is rejected (`"stereo"`, vfdata.tracking.stereo_lift; docs/tracking.md has the figures).
+
+With `recover` (on by default) a lost point is looked for again every frame: its reference patch (the
+first image's) is matched into the current image by Lucas-Kanade, started where its tracked neighbours'
+motion says it should be, and taken back only where the match lands near that guess and tracks back onto
+the reference pixel. A recovered point keeps its identity, so its displacement is still from where it was
+first seen. Without it a long recording keeps few points: on 742-frame `colon` recordings 4-134 of 256
+were left at the end (docs/tracking.md, "Lost and found").
 """
 
 from __future__ import annotations
@@ -15,13 +22,20 @@ from __future__ import annotations
 import numpy as np
 
 from vfdata.calibration import PinholeCamera
-from vfdata.tracking.flow import to_gray, track_lk
+from vfdata.tracking.flow import refine_from_reference, to_gray, track_lk
 from vfdata.tracking.lifting import lift_pixels
 from vfdata.tracking.sampling import select_reference_points
 from vfdata.tracking.stereo_lift import StereoLift
 
 LIFTS = ("depth", "stereo")
 DEFAULT_LIFT = "depth"
+RECOVER_NEIGHBOURS = 6  # tracked points whose motion places a lost one
+RECOVER_RADIUS_PX = 80.0  # ... found this near it in the reference image
+RECOVER_GUESS_PX = 4.0  # the reference match must land this near the neighbours' guess ...
+RECOVER_LAST_PX = 30.0  # ... or this near where the point was last seen, where too few neighbours are tracked
+# Lost points are looked for every this many frames: each look builds two image pyramids, most of its
+# cost, so looking every 4th frame keeps the tracker a small part of a live frame's time (docs/tracking.md).
+RECOVER_EVERY = 4
 
 
 class KLTTracker:
@@ -36,7 +50,7 @@ class KLTTracker:
 
     `smoothing` in [0, 1), for either lift, filters each point's depth along its ray over time: the
     weight of its previous depth in the new one (an exponential filter, restarted where a point has
-    no depth; 0: none)."""
+    no depth; 0: none). `recover` looks for lost points again (the module's docstring)."""
 
     def __init__(
         self,
@@ -51,6 +65,7 @@ class KLTTracker:
         baseline_mm: float | None = None,
         working_range_mm: tuple[float, float] | None = None,
         smoothing: float = 0.0,
+        recover: bool = True,
     ):
         if lift not in LIFTS:
             raise ValueError(f"lift '{lift}' is not one of {', '.join(LIFTS)}")
@@ -61,9 +76,14 @@ class KLTTracker:
         self.camera, self.lift, self.smoothing = camera, lift, float(smoothing)
         self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.max_forward_backward_px = max_forward_backward_px
-        self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN once lost
+        self.recover = bool(recover)
+        self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN while lost
         self.alive = np.isfinite(self.uv).all(axis=1)
         self._image = to_gray(reference_image)
+        self._reference_image = self._image
+        self._reference_uv = self.uv.copy()
+        self._last_uv = self.uv.copy()  # where each point was last tracked
+        self._frame = 0
         self.stereo: StereoLift | None = None
         self.from_stereo = np.zeros(len(self.reference), bool)  # which points the latest frame lifted by stereo
         if lift == "stereo":
@@ -99,6 +119,9 @@ class KLTTracker:
         lost = idx[~ok]
         self.alive[lost] = False
         self.uv[lost] = np.nan
+        if self.recover:
+            self._recover(gray)
+            self._last_uv[self.alive] = self.uv[self.alive]
         self._image = gray
         points = lift_pixels(self.uv, depth_mm, self.camera)
         if self.stereo is not None:
@@ -110,3 +133,32 @@ class KLTTracker:
         if mask is not None:
             visible &= self.camera.in_mask(self._points, np.asarray(mask))  # NaN points project nowhere
         return self._points.copy(), visible
+
+    def _recover(self, gray: np.ndarray) -> None:
+        """Look for the lost points in `gray`. Each is guessed at its reference pixel moved as its tracked
+        neighbours (in the reference image) moved, or, without enough close neighbours, where it was last
+        seen; then matched from the reference image, and kept where the match lands near the guess and
+        tracks back onto the reference pixel."""
+        self._frame += 1
+        ref = self._reference_uv
+        if self._frame % RECOVER_EVERY:
+            return
+        lost = np.flatnonzero(~self.alive & np.isfinite(ref).all(axis=1))
+        if len(lost) == 0:
+            return
+        guess = self._last_uv[lost].copy()
+        reach = np.full(len(lost), RECOVER_LAST_PX)
+        alive = np.flatnonzero(self.alive)
+        if len(alive) >= RECOVER_NEIGHBOURS:
+            dist = np.linalg.norm(ref[lost, None, :] - ref[None, alive, :], axis=2)
+            near = np.argsort(dist, axis=1)[:, :RECOVER_NEIGHBOURS]
+            placed = (np.take_along_axis(dist, near, axis=1) < RECOVER_RADIUS_PX).all(axis=1)
+            moved = (self.uv[alive[near[placed]]] - ref[alive[near[placed]]]).mean(axis=1)
+            guess[placed] = ref[lost[placed]] + moved
+            reach[placed] = RECOVER_GUESS_PX
+        found, ok = refine_from_reference(self._reference_image, gray, ref[lost], guess, RECOVER_LAST_PX)
+        ok &= np.linalg.norm(found - guess, axis=1) < reach
+        back, ok_back = track_lk(gray, self._reference_image, found, self.max_forward_backward_px)
+        ok &= ok_back & (np.linalg.norm(back - ref[lost], axis=1) < self.max_forward_backward_px)
+        self.uv[lost[ok]] = found[ok]
+        self.alive[lost[ok]] = True
