@@ -1,20 +1,21 @@
-"""The `klt` baseline: a 2D tracker lifted to 3D, the stand-in for the paper's CoTracker ablation.
+"""`klt`: a 2D tracker lifted to 3D, the tracker of `visionforce` and the stand-in for the paper's CoTracker
+ablation.
 
 The same 256 reference points as the geometry tracker are projected into the reference left image and
-followed frame to frame with OpenCV's pyramidal Lucas-Kanade. A point is lost for good, as a 2D tracker
-would lose it, when LK fails, the forward-backward check fails (occlusion by the instrument, specular
-highlights, weak texture) or it leaves the image; lost points are NaN and never visible again.
+followed frame to frame with OpenCV's pyramidal Lucas-Kanade. A point is lost when LK fails, the
+forward-backward check fails (occlusion by the instrument, specular highlights, weak texture) or it leaves
+the image; a lost point is NaN and not visible until it is found again (`recover`, below).
 
 Each frame's 2D positions are lifted to 3D (`lift`) with that frame's depth map (`"depth"`), or by each
 point's own stereo match in the right image of the same pair, triangulated, with the depth map where
 the match is rejected (`"stereo"`, vfdata.tracking.stereo_lift; docs/tracking.md has the figures).
 
-With `recover` (on by default) a lost point is looked for again every frame: its reference patch (the
+With `recover` (on by default) a lost point is looked for again every 4th frame: its reference patch (the
 first image's) is matched into the current image by Lucas-Kanade, started where its tracked neighbours'
 motion says it should be, and taken back only where the match lands near that guess and tracks back onto
 the reference pixel. A recovered point keeps its identity, so its displacement is still from where it was
-first seen. Without it a long recording keeps few points: on 742-frame `colon` recordings 4-134 of 256
-were left at the end (docs/tracking.md, "Lost and found").
+first seen. Without it a long recording keeps few points: on 742-frame `colon` recordings 4-175 of 256
+were left at the end (106-191 with it) (docs/tracking.md, "Lost and found").
 """
 
 from __future__ import annotations
