@@ -25,12 +25,12 @@ def test_klt_follows_textured_motion_and_lifts_it_with_depth():
     assert error.full_median_mm < 0.3  # the motion is 3 mm
 
 
-def _instrument_crossing(recover: bool, frames: int):
+def _instrument_crossing(frames: int, **options):
     """A sheet sliding right under a flat grey instrument that covers a band of the image at frames 2-3,
     then leaves: the tracker, the points under the band, the last points and visibility, and the truth."""
     sheet = DeformingSheet(rigid_translation(frames, np.array([0.5, 0.0, 0.0])))
     views = [sheet.image(f) for f in range(frames)]
-    tracker = KLTTracker(sheet.cloud(0), CAMERA, views[0][0], num_points=64, recover=recover)
+    tracker = KLTTracker(sheet.cloud(0), CAMERA, views[0][0], num_points=64, **options)
     under = (tracker.uv[:, 0] > 330) & (tracker.uv[:, 0] < 420)
     assert under.sum() > 3
     for f in range(1, frames):
@@ -47,19 +47,25 @@ def _instrument_crossing(recover: bool, frames: int):
     return tracker, under, points, visible, truth[-1], normals[-1]
 
 
-def test_klt_without_recovery_drops_points_for_good_once_an_instrument_hides_them():
-    tracker, under, points, visible, _, _ = _instrument_crossing(recover=False, frames=8)
+def test_klt_by_default_drops_points_for_good_once_an_instrument_hides_them():
+    tracker, under, points, visible, _, _ = _instrument_crossing(frames=8)  # `recover` is off by default
     lost = ~tracker.alive
     assert lost[under].mean() > 0.8 and not lost[~under].all()
     assert np.isnan(points[lost]).all() and not visible[lost].any()
 
 
 def test_klt_finds_hidden_points_again_where_they_are_once_the_instrument_leaves():
-    tracker, under, points, visible, truth, normals = _instrument_crossing(recover=True, frames=8)
+    tracker, under, points, visible, truth, normals = _instrument_crossing(frames=8, recover=True)
     assert tracker.alive[under].mean() > 0.8 and visible[under].mean() > 0.8
     back = under & visible
     error = metrics.tracking_error(points[back], truth[back], normals[back])
     assert error.full_median_mm < 0.3 and error.full_p95_mm < 1.0  # the same point, not a neighbour's texture
+
+
+def test_klt_recover_must_be_true_or_false():
+    sheet = DeformingSheet(rigid_translation(2, np.zeros(3)))
+    with pytest.raises(ValueError, match="recover 'yes' is not true or false"):
+        KLTTracker(sheet.cloud(0), CAMERA, sheet.image(0)[0], num_points=16, recover="yes")
 
 
 def test_ground_truth_tracks_interpolate_material_points():

@@ -10,12 +10,14 @@ Each frame's 2D positions are lifted to 3D (`lift`) with that frame's depth map 
 point's own stereo match in the right image of the same pair, triangulated, with the depth map where
 the match is rejected (`"stereo"`, vfdata.tracking.stereo_lift; docs/tracking.md has the figures).
 
-With `recover` (on by default) a lost point is looked for again every 4th frame: its reference patch (the
+With `recover` (off by default) a lost point is looked for again every 4th frame: its reference patch (the
 first image's) is matched into the current image by Lucas-Kanade, started where its tracked neighbours'
 motion says it should be, and taken back only where the match lands near that guess and tracks back onto
 the reference pixel. A recovered point keeps its identity, so its displacement is still from where it was
-first seen. Without it a long recording keeps few points: on 742-frame `colon` recordings 4-175 of 256
-were left at the end (106-191 with it) (docs/tracking.md, "Lost and found").
+first seen. It keeps many more points on long recordings (on 742-frame `colon` recordings 106-191 of 256 at
+the end against 4-175), but the points that come back are lifted less exactly, and `visionforce` trained on
+them erred more at the views it never saw on two of three fresh datasets (docs/tracking.md, "Lost and
+found"), so it is an option, not the default.
 """
 
 from __future__ import annotations
@@ -66,18 +68,20 @@ class KLTTracker:
         baseline_mm: float | None = None,
         working_range_mm: tuple[float, float] | None = None,
         smoothing: float = 0.0,
-        recover: bool = True,
+        recover: bool = False,
     ):
         if lift not in LIFTS:
             raise ValueError(f"lift '{lift}' is not one of {', '.join(LIFTS)}")
         if not 0.0 <= smoothing < 1.0:
             raise ValueError(f"smoothing {smoothing} is not in [0, 1)")
+        if not isinstance(recover, bool):
+            raise ValueError(f"recover {recover!r} is not true or false")
         reference_points = np.asarray(reference_points, dtype=np.float64)
         reference_points = reference_points[np.isfinite(reference_points).all(axis=1)]
         self.camera, self.lift, self.smoothing = camera, lift, float(smoothing)
         self.reference = reference_points[select_reference_points(reference_points, num_points, seed=seed)]
         self.max_forward_backward_px = max_forward_backward_px
-        self.recover = bool(recover)
+        self.recover = recover
         self.uv = camera.project(self.reference)  # (n, 2) current pixels, NaN while lost
         self.alive = np.isfinite(self.uv).all(axis=1)
         self._image = to_gray(reference_image)
