@@ -45,7 +45,7 @@ def add_engine_flags(p: argparse.ArgumentParser, *, tracker_default: str | None,
     g.add_argument("--object-frame", default="auto", choices=list(OBJECT_FRAMES), help=OBJECT_FRAME_HELP)
     g.add_argument("--tracker", default=tracker_default, help=tracker_help)
     g.add_argument("--tracker-options", help="tracker options, key=value,... (e.g. for klt: lift=stereo, "
-                                             "smoothing=0.5; docs/tracking.md)")
+                                             "smoothing=0.5, recover=true; docs/tracking.md)")
     g.add_argument("--points", type=positive_int, default=256, help="tracked points (default 256)")
     g.add_argument("--seed", type=int, default=0,
                    help="random seed of the point sampling and the tracker (default 0; same seed: same tracks)")
