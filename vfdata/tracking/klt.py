@@ -4,7 +4,7 @@ ablation.
 The same 256 reference points as the geometry tracker are projected into the reference left image and
 followed frame to frame with OpenCV's pyramidal Lucas-Kanade. A point is lost when LK fails, the
 forward-backward check fails (occlusion by the instrument, specular highlights, weak texture) or it leaves
-the image; a lost point is NaN and not visible until it is found again (`recover`, below).
+the image; a lost point is NaN and not visible from then on, unless `recover` finds it again (below).
 
 Each frame's 2D positions are lifted to 3D (`lift`) with that frame's depth map (`"depth"`), or by each
 point's own stereo match in the right image of the same pair, triangulated, with the depth map where
