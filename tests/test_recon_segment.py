@@ -119,6 +119,20 @@ def test_a_diagonal_tissue_takes_its_depth_from_the_middle_of_its_box():
     assert mask[pale_bed].mean() < 0.05
 
 
+def test_a_highlight_is_metal_only_where_metal_surrounds_it():
+    # a clamp's specular highlight is the clamp; a shine on wet tissue is the tissue
+    from vfdata.recon.colortrack import metal_pixels
+
+    image = np.zeros((60, 120, 3), np.uint8)
+    image[:] = (120, 110, 200)  # pinkish tissue (BGR)
+    image[:, 60:] = (128, 128, 128)  # grey metal on the right half
+    image[20:30, 80:90] = 255  # a highlight on the metal
+    image[20:30, 20:30] = 255  # a highlight on the tissue
+    metal = metal_pixels(cv2.cvtColor(image, cv2.COLOR_BGR2Lab))
+    assert metal[:, 60:].all()
+    assert not metal[:, :60].any()
+
+
 def test_a_prompt_off_the_tissue_is_a_clear_error():
     frame, _ = _scene(0, None)
     with pytest.raises(InputError, match="the first frame's mask is empty: the prompt does not cover the tissue"):

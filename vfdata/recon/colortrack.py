@@ -20,6 +20,8 @@ from vfdata.recon.depth_ramp import ramp_gate
 from vfdata.recon.prompt import Prompt
 from vfdata.recon.segmenter import Segmenter, check_image
 
+HIGHLIGHT_L = 235  # OpenCV Lab lightness from which a grey pixel is a specular highlight
+
 
 @dataclass(frozen=True)
 class ColorTrackSettings:
@@ -56,9 +58,29 @@ class ColorTrackSettings:
 
 def metal_pixels(lab: np.ndarray, max_chroma: float = ColorTrackSettings.grey_chroma) -> np.ndarray:
     """(H, W) bool of an (H, W, 3) uint8 Lab image (OpenCV's): grey metal, as instruments and clamps are:
-    chroma under `max_chroma`, except specular highlights (near-white), which also occur on wet tissue."""
+    chroma under `max_chroma`. A specular highlight (near-white) belongs to what surrounds it: wet tissue
+    shines too, so a highlight is metal only where metal makes up most of its rim. (Taking every highlight
+    as tissue let a clamp ring's highlight into the simulator's colon seed 0 at 180 deg: mask IoU 0.93.)"""
     chroma2 = (lab[..., 1].astype(np.int32) - 128) ** 2 + (lab[..., 2].astype(np.int32) - 128) ** 2
-    return (chroma2 < max_chroma**2) & (lab[..., 0] < 235)
+    grey = chroma2 < max_chroma**2
+    highlight = grey & (lab[..., 0] >= HIGHLIGHT_L)
+    metal = grey & ~highlight
+    if highlight.any() and metal.any():
+        metal |= _enclosed_by(highlight, metal)
+    return metal
+
+
+def _enclosed_by(spots: np.ndarray, around: np.ndarray, share: float = 0.5) -> np.ndarray:
+    """(H, W) bool: the 8-connected components of `spots` whose one-pixel rim is at least `share` `around`."""
+    n, labels = cv2.connectedComponents(spots.astype(np.uint8), connectivity=8)
+    # Each rim pixel takes the label of the spot beside it (a 3x3 maximum of the labels).
+    grown = cv2.dilate(labels.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int32)
+    rim = (grown > 0) & ~spots
+    total = np.bincount(grown[rim], minlength=n)
+    covered = np.bincount(grown[rim & around], minlength=n)
+    enclosed = covered >= share * np.maximum(total, 1)
+    enclosed[0] = False
+    return enclosed[labels]
 
 
 class ColorTrackSegmenter(Segmenter):
