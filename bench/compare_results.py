@@ -34,12 +34,17 @@ def seed_figures(out: Path, variant: str) -> list[dict]:
     return rows
 
 
-def ratio_interval(before: np.ndarray, after: np.ndarray, draws: int = 10000, seed: int = 0) -> tuple[float, float]:
-    """The 90% bootstrap interval of mean(after) / mean(before), each folder's seeds resampled apart."""
-    rng = np.random.default_rng(seed)
-    b = rng.choice(before, size=(draws, len(before))).mean(axis=1)
-    a = rng.choice(after, size=(draws, len(after))).mean(axis=1)
-    low, high = np.quantile(a / b, [0.05, 0.95])
+DRAWS = 10000  # bootstrap resamples
+
+
+def resampled_means(values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(DRAWS,) means of `values` resampled with replacement: the bootstrap of a mean over seeds."""
+    return rng.choice(values, size=(DRAWS, len(values))).mean(axis=1)
+
+
+def interval(draws: np.ndarray) -> tuple[float, float]:
+    """The central 90% of bootstrap draws."""
+    low, high = np.quantile(draws, [0.05, 0.95])
     return float(low), float(high)
 
 
@@ -64,14 +69,15 @@ def main() -> None:
     describe(f"before {args.before}", before)
     describe(f"after  {args.after}", after)
     b, a = np.array([r["rmse"] for r in before]), np.array([r["rmse"] for r in after])
-    low, high = ratio_interval(b, a)
+    rng = np.random.default_rng(0)
+    b_draws = resampled_means(b, rng)
+    low, high = interval(resampled_means(a, rng) / b_draws)
     print(f"after / before: {a.mean() / b.mean():.3f} (90% interval, seeds resampled apart {low:.3f}-{high:.3f})")
     shared = sorted({r["seed"] for r in before} & {r["seed"] for r in after})
     if len(shared) > 1:
         old, new = {r["seed"]: r["rmse"] for r in before}, {r["seed"]: r["rmse"] for r in after}
         ratios = np.array([new[k] / old[k] for k in shared])
-        draws = np.random.default_rng(0).choice(ratios, size=(10000, len(ratios))).mean(axis=1)
-        low, high = np.quantile(draws, [0.05, 0.95])
+        low, high = interval(resampled_means(ratios, np.random.default_rng(0)))
         each = "  ".join(f"{k}: {q:.3f}" for k, q in zip(shared, ratios, strict=True))
         print(f"seed by seed ({len(ratios)} shared): {each}; "
               f"mean {ratios.mean():.3f} (90% interval {low:.3f}-{high:.3f})")
