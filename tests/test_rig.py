@@ -67,7 +67,12 @@ def test_a_stereo_recording_gives_rectified_pairs_and_the_tubes_defaults(stereo)
         engine = rig.engine(options, rig.prompt(None), look_ahead=4)
         assert (engine.camera, engine.baseline_mm) == (rig.camera, rig.baseline_mm)
         np.testing.assert_array_equal(engine.up, rig.up)
-        assert len(list(engine.look_ahead())) >= 1 and rig.engine(options, rig.prompt(None)).look_ahead is None
+        ahead = engine.look_ahead  # the motion scan's left images, and any frame's rectified pair
+        assert ahead.frames == 4 and len(list(ahead.scan_images())) == len(ahead.scan_indices) >= 1
+        pair = ahead.pair(3)
+        np.testing.assert_array_equal(pair[0], frames[3].left)
+        np.testing.assert_array_equal(pair[1], frames[3].right)
+        assert rig.engine(options, rig.prompt(None)).look_ahead is None
 
         shown = rig.view_messages(frames[0].stamp_ns, frames[0].left, None, lambda topic: True)
         assert [topic for topic, _ in shown] == [layout.LEFT_IMAGE, layout.LEFT_INFO]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,8 +32,10 @@ from vfdata.recon import Prompt, make_depth_estimator, make_segmenter, tissue_cl
 from vfdata.recon.depth import SENSOR_DEPTH
 from vfdata.recon.object_frame import ObjectFrame, estimate_object_frame, origin_cut_by_view
 from vfdata.recon.plane import board_frame, camera_frame, fit_board_plane
-from vfdata.recon.tissue_frame import tissue_frame
-from vfdata.tracking.motion_scan import scan_motion
+from vfdata.recon.rest_frames import rest_frames
+from vfdata.recon.tissue_frame import fitted_axis, tissue_frame
+from vfdata.recon.tube_axis import TubeAxis
+from vfdata.tracking.motion_scan import LookAhead, scan_motion
 from vfdata.tracking.registry import FrameInputs, Tracker, make_tracker
 
 log = logging.getLogger(__name__)
@@ -155,12 +157,13 @@ class FrameEngine:
     frame (`self.frame`) and starts the tracker; `up` is gravity-up in the left camera frame (from the
     ECM pose; None: X from the image's up). `ground_truth` is the simulator's ground_truth/ folder,
     for the `recorded` depth and the `groundtruth` tracker. `look_ahead`, when the input is a recording,
-    gives its left images from the first frame on at a stride (`vfdata.tracking.motion_scan`): the tube's
-    frame then also hears how each end moves over the recording (`vfdata.recon.tissue_frame`)."""
+    gives its frames ahead of the first (`vfdata.tracking.motion_scan.LookAhead`): the tube's frame then
+    also hears how each end moves over the recording, and sees its axis again at the frames where the
+    tissue rests (`vfdata.recon.tissue_frame`, `vfdata.recon.rest_frames`)."""
 
     def __init__(self, camera: PinholeCamera, baseline_mm: float, prompt: Prompt, options: EngineOptions | None = None,
                  up: np.ndarray | None = None, ground_truth: Path | None = None,
-                 look_ahead: Callable[[], Iterable[np.ndarray]] | None = None):
+                 look_ahead: LookAhead | None = None):
         self.options = options or EngineOptions()
         self.camera, self.baseline_mm, self.prompt = camera, float(baseline_mm), prompt
         self.prompt.check_inside(camera.width, camera.height)
@@ -282,11 +285,14 @@ class FrameEngine:
         elif self.options.object_frame == "paper":
             self.frame = estimate_object_frame(first.cloud_mm, self.up)
         else:
-            # A look ahead at the recording, when the caller can give one: the motion of each end (clamped_end).
-            motion = None if self.look_ahead is None else scan_motion(self.look_ahead(), first.mask,
-                                                                      first.depth_mm, self.camera)
+            # A look ahead at the recording, when the caller can give one: the motion of each end (clamped_end),
+            # and the axis again where the tissue rests (rest_frames).
+            motion = rest_axes = None
+            if self.look_ahead is not None:
+                motion = scan_motion(self.look_ahead.scan_images(), first.mask, first.depth_mm, self.camera)
+                rest_axes = self._rest_axes(rest_frames(*motion, self.look_ahead.scan_indices))
             self.frame = tissue_frame(first.image_bgr, first.mask, first.depth_mm, first.cloud_mm, self.camera,
-                                      self.up, motion)
+                                      self.up, motion, rest_axes)
         self.origin_cut = self.options.object_frame in ("auto", *TUBE_FRAMES) and bool(
             origin_cut_by_view(first.cloud_mm, self.frame, self.camera))
         if self.origin_cut:
@@ -295,6 +301,29 @@ class FrameEngine:
         if self.options.tracker != "none":
             self.tracker = make_tracker(self.options.tracker, first, self.options.num_points, self.options.seed,
                                         ground_truth=self.ground_truth, **self.options.tracker_options)
+
+    def _rest_axes(self, frames: list[int]) -> dict[int, TubeAxis]:
+        """The axis fitted at each of `frames` (where the tissue rests) as on the first frame, from its own
+        depth and a mask started anew from the prompt; frames whose fit is doubtful or impossible are left
+        out. None are fitted when the depth or mask backend cannot run on a frame alone (`any_frame`)."""
+        if not frames or self.depth is None or not (self.depth.any_frame and self.segmenter.any_frame):
+            return {}
+        # their own instances: the running depth stream may be matching the next pair in its thread
+        depth = make_depth_estimator(self.options.depth, **self._depth_options())
+        segmenter = make_segmenter(self.options.segment, **self._segment_options())
+        axes = {}
+        for i in frames:
+            left, right = self.look_ahead.pair(i)
+            depth_mm = depth.depth_mm(left, right, self.camera, self.baseline_mm)
+            try:
+                mask = segmenter.start(left, self.prompt, depth_mm)
+                axis, diagnostics = fitted_axis(left, mask, depth_mm, tissue_cloud(depth_mm, mask, self.camera),
+                                                self.camera)
+            except InputError:  # no tissue, or too little, in the prompt there: the other frames stand
+                continue
+            if not diagnostics["axis_doubtful"]:
+                axes[i] = axis
+        return axes
 
     def step(self, index: int, stamp_ns: int, left: np.ndarray, right: np.ndarray | None = None,
              depth_mm: np.ndarray | None = None) -> FrameResult:

@@ -177,7 +177,7 @@ def _metadata(rec: Recording, src: Path, options: ProcessOptions, engine: FrameE
         # the axis fits and the clamped end's cues (vfdata.recon.tissue_frame), and the verdict (vfdata.confidence)
         "object_frame_check": json.dumps(_jsonable({k: v for k, v in engine.frame.diagnostics.items()
                                                     if k in ("axis_from", "axis_doubtful", "axis_fits", "axis_rivals",
-                                                             "end", "doubtful")})),
+                                                             "rest", "end", "doubtful")})),
         **confidence.metadata(),
         "up_known": str(engine.up is not None).lower(),
         **_lean(engine),

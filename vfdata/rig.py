@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from functools import cached_property
 from pathlib import Path
@@ -43,6 +43,7 @@ from vfdata.tracker_kinds import IMAGE_TRACKERS, TRACKER_KINDS
 
 if TYPE_CHECKING:  # the engine pulls in torch (the trackers): imported where an engine is built
     from vfdata.engine import EngineOptions, FrameEngine
+    from vfdata.tracking.motion_scan import LookAhead
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,7 @@ class Rig:
         return FrameEngine(self.camera, self.baseline_mm, prompt, options, up=self.up, ground_truth=ground_truth,
                            look_ahead=self._look_ahead(look_ahead) if look_ahead and self.rec is not None else None)
 
-    def _look_ahead(self, frames: int) -> Callable[[], Iterable[np.ndarray]] | None:
+    def _look_ahead(self, frames: int) -> LookAhead | None:
         return None
 
     def frames(self, count: int | None = None) -> Iterator[Frame]:
@@ -227,13 +228,17 @@ class StereoRig(Rig):
         """Given, or the simulator's beside the raw folder (`find_ground_truth`); a camera: given."""
         return given if self.rec is None else find_ground_truth(self.rec, given)
 
-    def _look_ahead(self, frames: int) -> Callable[[], Iterable[np.ndarray]]:
+    def _look_ahead(self, frames: int) -> LookAhead:
         # here, not at the top: the motion scan's module pulls in torch (vfdata.tracking)
-        from vfdata.tracking.motion_scan import scan_stride
+        from vfdata.tracking.motion_scan import LookAhead
 
-        rec, count = self.rec, self._count(frames)
-        # the left images of a motion scan (vfdata.tracking.motion_scan): the first, then every k-th
-        return lambda: (rec.rectified_left(k) for k in range(0, count, scan_stride(count)))
+        rec = self.rec
+
+        def pair(i: int) -> tuple[np.ndarray, np.ndarray]:
+            frame = rec.rectified_frame(i)
+            return frame.left, frame.right
+
+        return LookAhead(self._count(frames), rec.rectified_left, pair)
 
     def frames(self, count: int | None = None) -> Iterator[Frame]:
         for k in range(self._count(count)):

@@ -87,6 +87,7 @@ class ColorTrackSegmenter(Segmenter):
     """The embedded default: colour model + flow-carried prior (see the module docstring)."""
 
     name = "colortrack"
+    any_frame = True
 
     def __init__(self, **options):
         fields = ColorTrackSettings.__dataclass_fields__

@@ -72,6 +72,7 @@ class SgbmDepth(DepthEstimator):
     """Semi-global matching with every pixel given a disparity (see the module docstring)."""
 
     name = "sgbm"
+    any_frame = True
 
     def __init__(self, **options):
         fields = SgbmSettings.__dataclass_fields__

@@ -21,6 +21,10 @@ class DepthEstimator(ABC):
     """A stereo depth backend. Subclasses implement `disparity`; `depth_mm` converts it."""
 
     name: str = ""
+    # Whether any one frame's depth comes from its pair alone, cheaply, beside the running stream (the
+    # object frame's look at resting frames, `vfdata.recon.rest_frames`): not a recorded sequence, nor a
+    # video model that would be loaded twice.
+    any_frame: bool = False
 
     @abstractmethod
     def disparity(self, left: np.ndarray, right: np.ndarray) -> np.ndarray:

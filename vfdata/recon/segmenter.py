@@ -19,6 +19,9 @@ class Segmenter(ABC):
     """A video tissue segmenter: `start` on the first frame with a prompt, then `track` per frame."""
 
     name: str = ""
+    # Whether `start` may run on any frame of a recording with the first frame's prompt, cheaply, beside the
+    # running video (the object frame's look at resting frames, `vfdata.recon.rest_frames`).
+    any_frame: bool = False
 
     @abstractmethod
     def start(self, image: np.ndarray, prompt: Prompt, depth_mm: np.ndarray | None = None) -> np.ndarray:

@@ -16,6 +16,10 @@ and turned 3 more by 11-16 degrees, with no warning (issue 32). What goes wrong,
   metal-free fit with a frontal cross-check and 90% for the whole cloud's fit. On the colon, 5-7.7 degrees
   of what remains is the sag: the tube hangs from its clamp, and the best line through its surface is that
   far from the clamp's axis, which the simulator calls Z (docs/reconstruction.md).
+- One frame is one view of an occluder. Where the caller looked ahead at the recording, the axis is also
+  fitted at later frames where the tissue rests again (`vfdata.recon.rest_frames`), past other
+  occlusions, and the axis taken is their trimmed mean with the first frame's fit: on 83 fresh full-length
+  recordings 98.8% of axes within 10 degrees of the truth against 95.2% from the first frame alone.
 - The wide end by one frame's taper fails when the instrument lies along the tube or the view cuts it.
   The end is voted by the cues of `vfdata.recon.clamped_end` (taper, the clamp's fixture, and, when the
   caller looked ahead at the recording, the motion of each end), and the frame is marked doubtful when no
@@ -37,6 +41,8 @@ and turned 3 more by 11-16 degrees, with no warning (issue 32). What goes wrong,
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
@@ -46,6 +52,7 @@ from vfdata.recon.clamped_end import EndDecision, decide, fixture_cue, motion_cu
 from vfdata.recon.cloud import grazing_pixels, tissue_cloud
 from vfdata.recon.colortrack import metal_pixels
 from vfdata.recon.object_frame import ObjectFrame, frame_on_axis
+from vfdata.recon.rest_frames import trimmed_direction
 from vfdata.recon.tube_axis import TubeAxis, slab_widths, tube_axis, tube_residual
 
 AXIS_DOUBT_RESIDUAL = 0.10  # the best fit's tube residual over this: the axis is doubtful ...
@@ -68,23 +75,40 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 def tissue_frame(image_bgr: np.ndarray, mask: np.ndarray, depth_mm: np.ndarray, cloud_mm: np.ndarray,
                  camera: PinholeCamera, up: np.ndarray | None = None,
-                 motion: tuple[np.ndarray, np.ndarray] | None = None) -> ObjectFrame:
+                 motion: tuple[np.ndarray, np.ndarray] | None = None,
+                 rest_axes: dict[int, TubeAxis] | None = None) -> ObjectFrame:
     """The tissue's object frame from its first frame: the left image (H, W, 3) BGR, the tissue `mask` and
     `depth_mm` (H, W), its cloud (N, 3) camera frame mm, `up` gravity-up in the camera frame (None: X from
     the image's up). `motion`: tracked points over the recording ((F, M, 3) mm, (F, M) visible), e.g. from
-    `vfdata.tracking.motion_scan`, for the motion cue. The frame's diagnostics hold every fit and cue and
+    `vfdata.tracking.motion_scan`, for the motion cue. `rest_axes`: frame index -> the axis fitted
+    (`fitted_axis`) at a later frame where the tissue rests (`vfdata.recon.rest_frames`): the axis is then
+    the mean of the first frame's and theirs. The frame's diagnostics hold every fit and cue and
     `doubtful`, the reasons to doubt it (empty: none)."""
-    clean_mask = mask & ~near_metal(image_bgr, camera)
-    frontal = ~grazing_pixels(depth_mm, camera)
-    clouds = {"cloud": cloud_mm, "clean": tissue_cloud(depth_mm, clean_mask, camera),
-              "frontal": tissue_cloud(depth_mm, mask & frontal, camera),
-              "clean_frontal": tissue_cloud(depth_mm, clean_mask & frontal, camera)}
-    axis, axis_diag = chosen_axis(clouds)
+    axis, axis_diag = fitted_axis(image_bgr, mask, depth_mm, cloud_mm, camera)
+    if rest_axes:
+        first = axis.direction
+        axis = replace(axis, direction=trimmed_direction(first, [a.direction for a in rest_axes.values()]))
+        axis_diag["rest"] = {"frames": sorted(rest_axes), "moved_deg": round(angle_deg(first, axis.direction), 2),
+                             "deg": [round(angle_deg(first, rest_axes[i].direction), 2) for i in sorted(rest_axes)],
+                             "first": np.round(first, 5).tolist(),
+                             "directions": [np.round(rest_axes[i].direction, 5).tolist() for i in sorted(rest_axes)]}
     decision = end_decision(axis, image_bgr, mask, cloud_mm, camera, motion)
     doubtful = [reason for reason, doubt in (("axis", axis_diag["axis_doubtful"]), (decision.doubt, decision.doubtful))
                 if doubt]
     return frame_on_axis(axis, cloud_mm, up, decision.low_end_clamped,
                          diagnostics={**axis_diag, "end": decision.to_dict(), "doubtful": doubtful})
+
+
+def fitted_axis(image_bgr: np.ndarray, mask: np.ndarray, depth_mm: np.ndarray, cloud_mm: np.ndarray,
+                camera: PinholeCamera) -> tuple[TubeAxis, dict]:
+    """The axis of one frame (`chosen_axis` over the whole cloud, the metal-free one, and each without its
+    grazing pixels) and its diagnostics; InputError when the cloud is too small to fit."""
+    clean_mask = mask & ~near_metal(image_bgr, camera)
+    frontal = ~grazing_pixels(depth_mm, camera)
+    clouds = {"cloud": cloud_mm, "clean": tissue_cloud(depth_mm, clean_mask, camera),
+              "frontal": tissue_cloud(depth_mm, mask & frontal, camera),
+              "clean_frontal": tissue_cloud(depth_mm, clean_mask & frontal, camera)}
+    return chosen_axis(clouds)
 
 
 def near_metal(image_bgr: np.ndarray, camera: PinholeCamera) -> np.ndarray:

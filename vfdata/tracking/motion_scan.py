@@ -11,7 +11,8 @@ the line of sight, which is all the question needs.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -27,6 +28,25 @@ FORWARD_BACKWARD_PX = 2.0  # looser than the trackers': frames far apart, and on
 def scan_stride(frames: int, looked_at: int = SCAN_FRAMES) -> int:
     """The step between the frames a scan of a `frames`-long recording looks at."""
     return max(1, int(np.ceil(frames / max(1, looked_at))))
+
+
+@dataclass(frozen=True)
+class LookAhead:
+    """A recording's frames ahead of the first, for processing to look at before it starts: `frames` is
+    how many will be processed, `left(i)` frame i's left rectified image, `pair(i)` its (left, right)."""
+
+    frames: int
+    left: Callable[[int], np.ndarray]
+    pair: Callable[[int], tuple[np.ndarray, np.ndarray]]
+
+    @property
+    def scan_indices(self) -> range:
+        """The frames a motion scan looks at: the first, then every k-th (`scan_stride`)."""
+        return range(0, self.frames, scan_stride(self.frames))
+
+    def scan_images(self) -> Iterator[np.ndarray]:
+        """The left images of the scan's frames, in order."""
+        return (self.left(i) for i in self.scan_indices)
 
 
 def scan_motion(images: Iterable[np.ndarray], mask: np.ndarray, depth_mm: np.ndarray, camera: PinholeCamera
