@@ -23,7 +23,6 @@ from vfdata.conversion.raw_folder import convert_raw_folder
 from vfdata.engine import EngineOptions
 from vfdata.manifest import load_manifest
 from vfdata.recon.segment import mask_iou
-from vfdata.recon.tissue_frame import fitted_axis
 from vfdata.recording import Recording
 from vfdata.rig import rig_for
 
@@ -67,8 +66,8 @@ def main() -> None:
         into_depth = angle_deg(z_true, np.array([0.0, 0.0, 1.0]))
         d = engine.frame.diagnostics
         z_first, tissue = z_err, (droop_figures(e.raw, engine.frame.z_axis)["tissue_err_deg"], None)
-        if d.get("rest"):  # the first frame's fit alone, turned to the frame's end
-            direction = fitted_axis(first.left, images.mask, images.depth_mm, images.cloud_mm, rig.camera)[0].direction
+        if d.get("rest"):  # the first frame's fit alone (kept in the diagnostics), turned to the frame's end
+            direction = np.asarray(d["rest"]["first"])
             direction = direction if direction @ engine.frame.z_axis >= 0 else -direction
             z_first = angle_deg(direction, z_true)
             tissue = (tissue[0], droop_figures(e.raw, direction)["tissue_err_deg"])

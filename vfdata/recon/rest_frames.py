@@ -56,7 +56,6 @@ def mean_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.ndarra
     return total / np.linalg.norm(total)
 
 
-
 def trimmed_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.ndarray:
     """The axis of the first frame's fit `first` and the resting frames' `others` ((3,) directions, sign
     arbitrary): their mean, taken again over the fits within TRIM_DEG of it until that keeps the same
@@ -64,9 +63,9 @@ def trimmed_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.nda
     scan cannot see, an instrument over the tissue), and so can the first: neither pulls the mean alone."""
     fits = [np.asarray(d, dtype=np.float64) / np.linalg.norm(d) for d in (first, *others)]
     fits = [d if d @ fits[0] >= 0 else -d for d in fits]
-    mean, kept = mean_direction(fits[0], fits[1:]), None
+    mean, kept, near = mean_direction(fits[0], fits[1:]), None, np.cos(np.radians(TRIM_DEG))
     for _ in range(len(fits)):
-        now = [k for k, d in enumerate(fits) if abs(d @ mean) >= np.cos(np.radians(TRIM_DEG))]
+        now = [k for k, d in enumerate(fits) if abs(d @ mean) >= near]
         if not now or now == kept:
             break
         kept = now
