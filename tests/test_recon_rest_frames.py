@@ -10,6 +10,7 @@ from vfdata.recon.rest_frames import (
     REST_AFTER_FRAMES,
     REST_MM,
     TRIM_DEG,
+    confirming_fits,
     mean_direction,
     rest_frames,
     trimmed_direction,
@@ -68,6 +69,37 @@ def test_the_axis_of_the_first_and_resting_frames_leaves_a_stray_fit_out():
     # two fits TRIM_DEG and more apart: their mean
     assert angle(trimmed_direction(turned(0), [turned(2 * TRIM_DEG)]), turned(TRIM_DEG)) < 1e-3
     assert angle(trimmed_direction(turned(7), []), turned(7)) < 1e-9
+
+
+def test_resting_fits_confirm_the_axis_within_the_trim_either_sign():
+    assert confirming_fits(turned(0), [turned(TRIM_DEG - 0.5), -turned(-2), turned(TRIM_DEG + 0.5)]) == 2
+    assert confirming_fits(turned(0), []) == 0
+
+
+@pytest.mark.parametrize("rest_deg, doubted", [((1.0, -1.0), False), ((1.0,), True), ((1.0, 15.0), True), ((), True)])
+def test_resting_frames_that_agree_lift_the_first_frames_axis_doubt(monkeypatch, rest_deg, doubted):
+    """The first frame doubts its own fit; two resting frames whose fits agree on the axis taken lift that
+    doubt, one alone or one stray does not (a stray is left out of the mean, so it confirms nothing)."""
+    from vfdata.calibration import PinholeCamera
+    from vfdata.recon import tissue_frame as module
+    from vfdata.recon.clamped_end import Cue, decide
+    from vfdata.recon.tube_axis import TubeAxis
+
+    def tube(deg: float) -> TubeAxis:
+        return TubeAxis(turned(deg), np.array([0.0, 0.0, 120.0]), 0.0, 100)
+
+    monkeypatch.setattr(module, "chosen_axis", lambda clouds: (tube(0), {"axis_doubtful": True}))
+    monkeypatch.setattr(module, "end_decision", lambda *args: decide([Cue("fixture", 1, 12.0)]))
+    x = np.linspace(-40.0, 40.0, 50)
+    cloud = np.stack([np.zeros_like(x), np.zeros_like(x), 120.0 + x], axis=1)
+    camera = PinholeCamera(60.0, 60.0, 32.0, 24.0, 64, 48)
+    frame = module.tissue_frame(np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), bool),
+                                np.full((48, 64), 120.0, np.float32), cloud, camera,
+                                rest_axes={40 + k: tube(d) for k, d in enumerate(rest_deg)} or None)
+    assert ("axis" in frame.diagnostics["doubtful"]) == doubted
+    assert frame.diagnostics["axis_doubtful"]  # the first frame's own judgement is kept beside
+    if rest_deg:  # the stray of 15 degrees is left out of the mean, and confirms nothing
+        assert frame.diagnostics["rest"]["confirming"] == sum(abs(d) <= TRIM_DEG for d in rest_deg)
 
 
 def test_processing_fits_the_axis_again_at_the_frames_where_the_tissue_rests(tmp_path):

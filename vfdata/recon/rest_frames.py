@@ -25,6 +25,7 @@ REST_AFTER_FRAMES = 30  # about a second at 30 frames/s: earlier frames see the 
 MAX_REST_FRAMES = 4  # spread over the resting frames: enough to outvote one occluded view (each fit ~0.7 s)
 MIN_POINTS = 10  # scan points followed to a frame, under which its rest cannot be told
 TRIM_DEG = 7.0  # a fit this far from the mean of all is left out of it
+CONFIRM_FITS = 2  # resting frames' fits within TRIM_DEG of the axis that lift the first frame's doubt on it
 
 
 def rest_frames(points_mm: np.ndarray, visible: np.ndarray, indices: Sequence[int]) -> list[int]:
@@ -71,3 +72,13 @@ def trimmed_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.nda
         kept = now
         mean = mean_direction(fits[kept[0]], [fits[k] for k in kept[1:]])
     return mean if mean @ fits[0] >= 0 else -mean
+
+
+def confirming_fits(axis: np.ndarray, others: Sequence[np.ndarray]) -> int:
+    """How many of the resting frames' fits `others` ((3,) directions, sign arbitrary) lie within TRIM_DEG
+    of the chosen `axis`. Each was fitted on its own frame and kept only where that frame did not doubt it,
+    so CONFIRM_FITS of them agreeing is an axis seen twice more past other occlusions: the first frame's
+    doubt about its own fit no longer holds for the axis taken."""
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    near = np.cos(np.radians(TRIM_DEG))
+    return sum(abs(float(np.asarray(d) @ axis)) / float(np.linalg.norm(d)) >= near for d in others)

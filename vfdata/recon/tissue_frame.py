@@ -37,6 +37,9 @@ and turned 3 more by 11-16 degrees, with no warning (issue 32). What goes wrong,
   at 10, the product's promise, it also flags glove 203's `glove_018` (10.9 degrees; a rival fit 11.9
   degrees away, as round) and one more frame within 10 degrees of the sweep's 152; on 76 fresh first frames
   (colon seeds 301-304, glove 401-402, 60 frames each, random views) it changes nothing.
+  These doubts are the first frame's about its own fit. Where `CONFIRM_FITS` resting frames' fits, each
+  undoubted on its own frame, lie within `TRIM_DEG` of the axis taken, the axis was seen past other
+  occlusions and the doubt is lifted (`object_frame_check.rest.confirming`).
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ from vfdata.recon.clamped_end import EndDecision, decide, fixture_cue, motion_cu
 from vfdata.recon.cloud import grazing_pixels, tissue_cloud
 from vfdata.recon.colortrack import metal_pixels
 from vfdata.recon.object_frame import ObjectFrame, frame_on_axis
-from vfdata.recon.rest_frames import trimmed_direction
+from vfdata.recon.rest_frames import CONFIRM_FITS, confirming_fits, trimmed_direction
 from vfdata.recon.tube_axis import TubeAxis, slab_widths, tube_axis, tube_residual
 
 AXIS_DOUBT_RESIDUAL = 0.10  # the best fit's tube residual over this: the axis is doubtful ...
@@ -91,10 +94,12 @@ def tissue_frame(image_bgr: np.ndarray, mask: np.ndarray, depth_mm: np.ndarray, 
         axis_diag["rest"] = {"frames": sorted(rest_axes), "moved_deg": round(angle_deg(first, axis.direction), 2),
                              "deg": [round(angle_deg(first, rest_axes[i].direction), 2) for i in sorted(rest_axes)],
                              "first": np.round(first, 5).tolist(),
-                             "directions": [np.round(rest_axes[i].direction, 5).tolist() for i in sorted(rest_axes)]}
+                             "directions": [np.round(rest_axes[i].direction, 5).tolist() for i in sorted(rest_axes)],
+                             "confirming": confirming_fits(axis.direction, [a.direction for a in rest_axes.values()])}
+    # The first frame's doubt is about its own fit; resting frames that agree on the axis taken lift it.
+    axis_doubt = axis_diag["axis_doubtful"] and axis_diag.get("rest", {}).get("confirming", 0) < CONFIRM_FITS
     decision = end_decision(axis, image_bgr, mask, cloud_mm, camera, motion)
-    doubtful = [reason for reason, doubt in (("axis", axis_diag["axis_doubtful"]), (decision.doubt, decision.doubtful))
-                if doubt]
+    doubtful = [reason for reason, doubt in (("axis", axis_doubt), (decision.doubt, decision.doubtful)) if doubt]
     return frame_on_axis(axis, cloud_mm, up, decision.low_end_clamped,
                          diagnostics={**axis_diag, "end": decision.to_dict(), "doubtful": doubtful})
 
