@@ -67,6 +67,10 @@ def trimmed_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.nda
     mean, kept, near = mean_direction(fits[0], fits[1:]), None, np.cos(np.radians(TRIM_DEG))
     for _ in range(len(fits)):
         now = [k for k, d in enumerate(fits) if abs(d @ mean) >= near]
+        if not now and kept is None:  # a far stray among few fits drags the mean away from all of them:
+            # start again from the largest group that agrees, if two fits or more do (the first's on a tie)
+            group = max(([j for j, e in enumerate(fits) if abs(d @ e) >= near] for d in fits), key=len)
+            now = group if len(group) > 1 else now
         if not now or now == kept:
             break
         kept = now
