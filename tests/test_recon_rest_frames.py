@@ -77,6 +77,7 @@ def test_the_axis_of_the_first_and_resting_frames_leaves_a_stray_fit_out():
 def test_resting_fits_confirm_the_axis_within_the_trim_either_sign():
     assert confirming_fits(turned(0), [turned(TRIM_DEG - 0.5), -turned(-2), turned(TRIM_DEG + 0.5)]) == 2
     assert confirming_fits(turned(0), []) == 0
+    assert type(confirming_fits(turned(0), [turned(1)])) is int  # written into the derived metadata as JSON
 
 
 @pytest.mark.parametrize("rest_deg, doubted", [((1.0, -1.0), False), ((1.0,), True), ((1.0, 15.0), True), ((), True)])

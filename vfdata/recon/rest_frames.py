@@ -88,4 +88,4 @@ def confirming_fits(axis: np.ndarray, others: Sequence[np.ndarray]) -> int:
     doubt about its own fit no longer holds for the axis taken."""
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
     near = np.cos(np.radians(TRIM_DEG))
-    return sum(abs(float(np.asarray(d) @ axis)) / float(np.linalg.norm(d)) >= near for d in others)
+    return int(sum(abs(float(np.asarray(d) @ axis)) / float(np.linalg.norm(d)) >= near for d in others))
