@@ -26,6 +26,12 @@ MAX_REST_FRAMES = 4  # spread over the resting frames: enough to outvote one occ
 MIN_POINTS = 10  # scan points followed to a frame, under which its rest cannot be told
 TRIM_DEG = 7.0  # a fit this far from the mean of all is left out of it
 CONFIRM_FITS = 2  # resting frames' fits within TRIM_DEG of the axis that lift the first frame's doubt on it
+_TRIM_COS = float(np.cos(np.radians(TRIM_DEG)))
+
+
+def _agree(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two unit line directions (sign arbitrary) lie within TRIM_DEG of each other."""
+    return abs(float(a @ b)) >= _TRIM_COS
 
 
 def rest_frames(points_mm: np.ndarray, visible: np.ndarray, indices: Sequence[int]) -> list[int]:
@@ -67,12 +73,12 @@ def trimmed_direction(first: np.ndarray, others: Sequence[np.ndarray]) -> np.nda
     off, whose mean of all four was 11.1 degrees from the truth; the group's is 2.8)."""
     fits = [np.asarray(d, dtype=np.float64) / np.linalg.norm(d) for d in (first, *others)]
     fits = [d if d @ fits[0] >= 0 else -d for d in fits]
-    mean, kept, near = mean_direction(fits[0], fits[1:]), None, np.cos(np.radians(TRIM_DEG))
+    mean, kept = mean_direction(fits[0], fits[1:]), None
     for _ in range(len(fits)):
-        now = [k for k, d in enumerate(fits) if abs(d @ mean) >= near]
+        now = [k for k, d in enumerate(fits) if _agree(d, mean)]
         if not now and kept is None:  # a far stray among few fits drags the mean away from all of them:
             # start again from the largest group that agrees, if two fits or more do (the first's on a tie)
-            group = max(([j for j, e in enumerate(fits) if abs(d @ e) >= near] for d in fits), key=len)
+            group = max(([j for j, e in enumerate(fits) if _agree(d, e)] for d in fits), key=len)
             now = group if len(group) > 1 else now
         if not now or now == kept:
             break
@@ -87,5 +93,4 @@ def confirming_fits(axis: np.ndarray, others: Sequence[np.ndarray]) -> int:
     so CONFIRM_FITS of them agreeing is an axis seen twice more past other occlusions: the first frame's
     doubt about its own fit no longer holds for the axis taken."""
     axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
-    near = np.cos(np.radians(TRIM_DEG))
-    return int(sum(abs(float(np.asarray(d) @ axis)) / float(np.linalg.norm(d)) >= near for d in others))
+    return sum(_agree(np.asarray(d, dtype=np.float64) / np.linalg.norm(d), axis) for d in others)

@@ -88,16 +88,18 @@ def tissue_frame(image_bgr: np.ndarray, mask: np.ndarray, depth_mm: np.ndarray, 
     the mean of the first frame's and theirs. The frame's diagnostics hold every fit and cue and
     `doubtful`, the reasons to doubt it (empty: none)."""
     axis, axis_diag = fitted_axis(image_bgr, mask, depth_mm, cloud_mm, camera)
+    confirming = 0
     if rest_axes:
-        first = axis.direction
-        axis = replace(axis, direction=trimmed_direction(first, [a.direction for a in rest_axes.values()]))
-        axis_diag["rest"] = {"frames": sorted(rest_axes), "moved_deg": round(angle_deg(first, axis.direction), 2),
-                             "deg": [round(angle_deg(first, rest_axes[i].direction), 2) for i in sorted(rest_axes)],
+        first, frames = axis.direction, sorted(rest_axes)
+        rests = [rest_axes[i].direction for i in frames]
+        axis = replace(axis, direction=trimmed_direction(first, rests))
+        confirming = confirming_fits(axis.direction, rests)
+        axis_diag["rest"] = {"frames": frames, "moved_deg": round(angle_deg(first, axis.direction), 2),
+                             "deg": [round(angle_deg(first, d), 2) for d in rests],
                              "first": np.round(first, 5).tolist(),
-                             "directions": [np.round(rest_axes[i].direction, 5).tolist() for i in sorted(rest_axes)],
-                             "confirming": confirming_fits(axis.direction, [a.direction for a in rest_axes.values()])}
+                             "directions": [np.round(d, 5).tolist() for d in rests], "confirming": confirming}
     # The first frame's doubt is about its own fit; resting frames that agree on the axis taken lift it.
-    axis_doubt = axis_diag["axis_doubtful"] and axis_diag.get("rest", {}).get("confirming", 0) < CONFIRM_FITS
+    axis_doubt = axis_diag["axis_doubtful"] and confirming < CONFIRM_FITS
     decision = end_decision(axis, image_bgr, mask, cloud_mm, camera, motion)
     doubtful = [reason for reason, doubt in (("axis", axis_doubt), (decision.doubt, decision.doubtful)) if doubt]
     return frame_on_axis(axis, cloud_mm, up, decision.low_end_clamped,
