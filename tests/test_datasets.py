@@ -458,6 +458,39 @@ def test_polar_z_counts_the_place_along_z_from_the_tip_whatever_the_origin():
     np.testing.assert_allclose(moved[:, seen], transform_tokens(tokens, m)[:, seen], atol=1e-4)
 
 
+def test_radius_tissue_gives_r0_in_tissue_radii_whatever_the_axis_offset():
+    """A tube whose axis was set off its centre looks wider about it: in mm every r0 grows (what a model
+    trained at one view read as force); in tissue radii the points on the surface stay near 1, and a
+    few points off the tissue do not move the scale."""
+    from vfdata.clips.tokens import track_tokens
+
+    rng = np.random.default_rng(5)
+    theta = rng.uniform(-1.2, 1.2, 60)  # the flank the camera sees
+    ref = np.column_stack([12.0 * np.cos(theta), 12.0 * np.sin(theta), rng.uniform(-100, 0, 60)])
+    ref[:4, :2] *= 2.5  # off the tissue: the bed beside it
+    points = np.stack([ref, ref + [0.0, 0.0, 0.5], ref + [0.0, 0.0, 1.0]])
+    visible = np.ones((3, 60), bool)
+    spec = ClipSpec(features="polar_z_disp_vel", radius="tissue")
+    tokens, valid, _ = track_tokens(spec, points, visible)
+    np.testing.assert_allclose(tokens[1, 4:, 2], 1.0, atol=1e-5)
+    np.testing.assert_allclose(tokens[1, :4, 2], 2.5, atol=1e-5)
+    in_mm, _, _ = track_tokens(ClipSpec(features="polar_z_disp_vel"), points, visible)
+    np.testing.assert_allclose(in_mm[1, 4:, 2], 12.0, atol=1e-4)
+    np.testing.assert_array_equal(np.delete(tokens, 2, axis=-1), np.delete(in_mm, 2, axis=-1))
+    # The same tube about an axis 1.5 times its radius away from where the view sees it scales every
+    # r0 in mm, and none in tissue radii.
+    wide = points * [1.5, 1.5, 1.0]
+    assert np.median(track_tokens(ClipSpec(features="polar_z_disp_vel"), wide, visible)[0][1, :, 2]) > 17.9
+    np.testing.assert_allclose(track_tokens(spec, wide, visible)[0][..., 2], tokens[..., 2], atol=1e-5)
+
+
+@pytest.mark.parametrize("options", [dict(features="disp_vel"), dict(features="polar_z_disp_vel", frame="camera"),
+                                     dict(features="polar_z_disp_vel", tilt_augment_deg=5.0)])
+def test_radius_tissue_is_refused_where_r0_is_not_polar_in_the_object_frame(options):
+    with pytest.raises(VisionForceError, match="radius 'tissue'"):
+        ClipSpec(radius="tissue", **options)
+
+
 def test_the_one_line_ways_in_and_denormalise(dataset_root):
     """from_manifest for the dataset and the data module; a network's output to N with the training
     split's statistics, as ForceRegressor does it."""

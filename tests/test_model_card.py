@@ -17,14 +17,16 @@ SPEC = {"input": "tracks", "features": "disp_vel", "frame": "object", "num_point
         "stride": 4, "fps": 30.0}
 
 
-def _run_folder(tmp_path, features: str = "disp_vel", recordings: dict | None = None, run: str = "run"):
+def _run_folder(tmp_path, features: str = "disp_vel", recordings: dict | None = None, run: str = "run",
+                **spec):
     """A run folder as `vfdata experiment` leaves it: checkpoints/ with a best checkpoint, and metrics.json."""
     reg = _regressor(in_features=6)
     reg.band_calibration = BandCalibration(scale=(0.5, 0.6, 1.2), weight=(0.0, 0.0, 0.0), frames=480,
                                            train_min_n=(-3.0, -4.0, -1.0), train_max_n=(3.0, 4.0, 9.5))
     (tmp_path / run / "checkpoints").mkdir(parents=True)
     ckpt = _save_checkpoint(reg, tmp_path / run / "checkpoints" / "epoch003-val_loss0.50000.ckpt",
-                            {"manifest": str(tmp_path / "gone.manifest.yaml"), "spec": {**SPEC, "features": features}})
+                            {"manifest": str(tmp_path / "gone.manifest.yaml"),
+                             "spec": {**SPEC, "features": features, **spec}})
     state = torch.load(ckpt, weights_only=True)
     state["ForceDataModule"] = {"tracker": "klt", "tissue_lean_deg": [4.5, 6.1],
                                 **({"recordings": recordings} if recordings else {})}
@@ -52,6 +54,12 @@ def test_the_card_says_what_the_model_expects_and_has_seen(tmp_path, capsys):
     assert "although `vfdata process` judged them doubtful: colon_002 (taper)" in out
     assert "RMSE 0.861 N, R2 0.790 over 398 frames (visionforce, seed 0)" in out
     assert "4 epochs, 120 steps" in out and "runs in `vfdata predict` and `vfdata live`" in out
+
+
+def test_the_card_says_when_r0_is_in_tissue_radii(tmp_path, capsys):
+    _run_folder(tmp_path, features="polar_z_disp_vel", radius="tissue")
+    assert main(["model-info", str(tmp_path / "run")]) == 0
+    assert "tokens polar_z_disp_vel (r0 in tissue radii) in the object frame" in capsys.readouterr().out
 
 
 def test_an_experiments_model_names_what_it_left_out(tmp_path, capsys):

@@ -164,7 +164,8 @@ def test_the_token_recipe_of_a_stream_is_the_recordings():
     points = points - np.array([0.0, 30.0, 0.0])  # the y < 0 flank: mirrored with canonical_side
     visible[:3, :4] = False
     times = np.arange(12) * 33_333_333
-    for spec in (ClipSpec(canonical_side=True, features="disp_vel"), ClipSpec(subset="top_bottom_20")):
+    for spec in (ClipSpec(canonical_side=True, features="disp_vel"), ClipSpec(subset="top_bottom_20"),
+                 ClipSpec(features="polar_disp_vel", radius="tissue")):
         whole, whole_valid, side = track_tokens(spec, points, visible, times)
         assert side == (-1.0 if spec.canonical_side else 1.0)
         for t in range(1, 11):

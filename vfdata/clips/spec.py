@@ -15,6 +15,7 @@ Frame = Literal["object", "camera"]
 Features = Literal["pos_vel", "pos", "vel", "disp_vel", "disp", "ref_disp_vel", "polar_disp_vel", "polar_z_disp_vel",
                    "polar_z_disp_relax_vel"]
 Subset = Literal["all", "top_bottom_20"]
+Radius = Literal["mm", "tissue"]
 
 FEATURE_CHANNELS = {"pos_vel": 6, "pos": 3, "vel": 3, "disp_vel": 6, "disp": 3, "ref_disp_vel": 9,
                     "polar_disp_vel": 9, "polar_z_disp_vel": 12, "polar_z_disp_relax_vel": 15}
@@ -49,6 +50,11 @@ class ClipSpec:
             polar_z_disp_relax_vel (the same with the relaxation after the displacement: the displacement
             less its causal exponential average over `RELAX_TAU_S`, mm: how far a point sits from where it
             has been for the last seconds, which a viscoelastic tissue's force depends on; beyond the paper).
+        radius: how the polar features give a point's distance from the Z axis, r0: mm, or tissue (r0 over the
+            tissue's radius on the recording's first frame, the median r0 of its visible tracked points, so 1 on
+            the surface; beyond the paper). A partial view from behind sets the axis a few mm off the tube's
+            centre and every r0 grows with it; a model trained at one view read that as force (colon seed
+            131, 191 degrees: 7.6 N at rest; docs/results.md).
         subset: all points, or top_bottom_20 (the top and bottom 20% by object z on the first frame).
         clip_frames: frames per clip (T).
         stride: frames between clip starts.
@@ -77,6 +83,7 @@ class ClipSpec:
     frame: Frame = "object"
     features: Features = "pos_vel"
     subset: Subset = "all"
+    radius: Radius = "mm"
     clip_frames: int = 16
     stride: int = 4
     num_points: int = 256
@@ -91,7 +98,8 @@ class ClipSpec:
 
     def __post_init__(self) -> None:
         # jsonargparse checks the Literal types on the command line; this checks them in Python too
-        choices = {"input": Input, "source": Source, "frame": Frame, "features": Features, "subset": Subset}
+        choices = {"input": Input, "source": Source, "frame": Frame, "features": Features, "subset": Subset,
+                   "radius": Radius}
         for name, kind in choices.items():
             allowed = get_args(kind)
             if getattr(self, name) not in allowed:
@@ -101,6 +109,10 @@ class ClipSpec:
         if self.tilt_augment_deg < 0 or (self.tilt_augment_deg and self.features not in TILTABLE_FEATURES):
             raise VisionForceError(f"tilt_augment_deg {self.tilt_augment_deg}: an angle >= 0, for features "
                                    f"{', '.join(TILTABLE_FEATURES)}")
+        if self.radius == "tissue" and (not self.features.startswith("polar") or self.frame != "object"
+                                        or self.tilt_augment_deg):
+            raise VisionForceError("radius 'tissue' scales the polar features' r0 (features polar_..., frame "
+                                   "object), and a tilt needs r0 in mm (tilt_augment_deg 0)")
         for name in ("canonical_side", "mirror_augment", "rotate_augment", "tilt_augment_deg"):
             if getattr(self, name) and (self.input != "tracks" or self.frame != "object"):
                 raise VisionForceError(f"{name} moves tracked points in the object frame (input tracks, frame "

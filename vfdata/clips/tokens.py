@@ -331,7 +331,22 @@ def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     average = None if average_mm is None else mirror_y(np.asarray(average_mm, dtype=np.float64), side)
     tokens, valid = point_tokens(spec, mirror_y(points, side), visible, times_ns, object_frame, keep, fps=fps,
                                  reference_mm=reference, period_ns=period_ns, average_mm=average)
+    if spec.radius == "tissue":
+        radius = tissue_radius(*first) if first is not None else None
+        if radius is None and valid.any():  # nothing seen on the first frame: the radius these frames show
+            radius = float(np.median(tokens[..., 2][valid]))
+        tokens[..., 2] /= radius or 1.0
     return tokens, valid, side
+
+
+def tissue_radius(points_object_mm: np.ndarray, visible: np.ndarray) -> float | None:
+    """The tissue's radius on one frame, mm: the median distance of its visible points (N, 3), object
+    frame, from the Z axis (None when none is seen). The median, because a few points the mask took off
+    the bed or the instrument lie two or three radii out."""
+    points = np.asarray(points_object_mm, dtype=np.float64)[np.asarray(visible, dtype=bool)]
+    points = points[np.isfinite(points).all(axis=1)]
+    r = np.hypot(points[:, 0], points[:, 1])
+    return float(np.median(r)) if len(r) and np.median(r) > 0 else None
 
 
 def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

@@ -82,8 +82,8 @@ def _card(checkpoint: dict[str, Any], path: Path, run: Path | None) -> dict[str,
         },
         "inputs": {
             "tracker": state.get("tracker"),
-            **{k: spec[k] for k in ("input", "features", "frame", "num_points", "clip_frames", "stride", "fps")
-               if k in spec},
+            **{k: spec[k] for k in ("input", "features", "radius", "frame", "num_points", "clip_frames", "stride",
+                                    "fps") if k in spec},
         },
         "force_range_n": _range(band),
         "band": {k: band[k] for k in ("coverage", "frames", "scale") if k in band} or None,
@@ -120,7 +120,8 @@ def card_text(card: dict[str, Any]) -> str:
     if inputs.get("input") == "tracks":
         tracker = inputs.get("tracker") or "an unnamed tracker"
         lines.append(f"inputs:     {inputs.get('num_points')} points tracked by {tracker}, tokens "
-                     f"{inputs.get('features')} in the {inputs.get('frame')} frame, clips of "
+                     f"{inputs.get('features')}{' (r0 in tissue radii)' if inputs.get('radius') == 'tissue' else ''} "
+                     f"in the {inputs.get('frame')} frame, clips of "
                      f"{inputs.get('clip_frames')} frames (stride {inputs.get('stride')}) at "
                      f"{inputs.get('fps', 0):.0f} fps")
     elif inputs.get("input"):
