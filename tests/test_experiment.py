@@ -127,6 +127,15 @@ def test_missing_recording_names_the_fix(tmp_path):
         prepare(entries, ["geometry"], progress=False)
 
 
+def test_every_variants_spec_is_valid_on_stereo_and_rgbd():
+    """Each variant's config with its overrides (and its RGB-D twin's) makes a ClipSpec: an ablation that
+    swaps visionforce's polar features for plain ones must also give r0 back in mm (radius)."""
+    variants = list(ALL_VARIANTS.values())
+    for v in variants + for_depth_only(variants):
+        if "spec" in (yaml.safe_load((CONFIGS / v.config).read_text())["data"].get("init_args") or {}):
+            config_spec(CONFIGS / v.config, v.overrides)
+
+
 def test_rgbd_recordings_run_the_project_pipeline_on_depth_only_tracks(tmp_path):
     # On RGB-D the image trackers would follow the depth drawn as grey: VisionForce's own variants read
     # the geometry tracks there, and a variant that names its tracker keeps it.

@@ -62,10 +62,10 @@ VISIONFORCE_VARIANTS: dict[str, Variant] = {v.name: v for v in (
 VISIONFORCE_ABLATIONS: dict[str, Variant] = {v.name: v for v in (
     Variant("visionforce_displacement_only", "VisionForce, displacement only", "visionforce.yaml",
             tracker=VISIONFORCE_TRACKER,
-            overrides=("--data.spec.features=disp", "--model.model.init_args.in_features=3")),
+            overrides=("--data.spec.features=disp", "--data.spec.radius=mm", "--model.model.init_args.in_features=3")),
     Variant("visionforce_velocity_only", "VisionForce, velocity only", "visionforce.yaml",
             tracker=VISIONFORCE_TRACKER,
-            overrides=("--data.spec.features=vel", "--model.model.init_args.in_features=3")),
+            overrides=("--data.spec.features=vel", "--data.spec.radius=mm", "--model.model.init_args.in_features=3")),
     Variant("visionforce_relaxation", "VisionForce, with the relaxation", "visionforce.yaml",
             tracker=VISIONFORCE_TRACKER,
             overrides=("--data.spec.features=polar_z_disp_relax_vel", "--model.model.init_args.in_features=15")),
