@@ -36,11 +36,11 @@ from vfmodels.experiment.runner import test_predictions as experiment_test
 
 LIMIT = 4.0  # the embedding distance beyond which a frame is unlike training (no stretch: no distance_ref)
 FRAMES = 20  # clips of 16 frames every 4: frames 0-15 and 19 are scored from the clip that ends on them
-SPEC = {"input": "tracks", "frame": "object", "features": "polar_z_disp_vel", "clip_frames": 16, "stride": 4,
-        "mirror_augment": True, "rotate_augment": True, "fps": 30.0}  # configs/visionforce.yaml's
+SPEC = {"input": "tracks", "frame": "object", "features": "polar_z_disp_vel", "radius": "tissue", "clip_frames": 16,
+        "stride": 4, "mirror_augment": True, "rotate_augment": True, "fps": 30.0}  # configs/visionforce.yaml's
 # The scale of each token channel (place, place along Z, displacement, [relaxation,] velocity).
-SCALES = {"polar_z_disp_vel": [1, 1, 10, 1, 1, 30, 2, 2, 2, 30, 30, 30.0],
-          "polar_z_disp_relax_vel": [1, 1, 10, 1, 1, 30, 2, 2, 2, 0.5, 0.5, 0.5, 30, 30, 30.0]}
+SCALES = {"polar_z_disp_vel": [1, 1, 0.2, 1, 1, 30, 2, 2, 2, 30, 30, 30.0],
+          "polar_z_disp_relax_vel": [1, 1, 0.2, 1, 1, 30, 2, 2, 2, 0.5, 0.5, 0.5, 30, 30, 30.0]}
 
 
 @pytest.fixture(scope="module", params=list(SCALES))
