@@ -6,9 +6,10 @@ For each RESULTS folder (an experiment's output, or a `bench/sweep.py` seed's `r
 written with r0 in mm) and its manifest (RESULTS/manifests/klt.manifest.yaml, the doubtful recordings
 already left out): once as cached, once with each recording's r0 divided by the median r0 of its first
 frame's valid tokens (what `ClipSpec.radius: tissue` computes from the first frame's visible points). The
-derived MCAPs need not exist any more: the sweep deletes them to save disk, and the cache is all training
-reads. Prints per folder and training seed the pooled R², RMSE and each view's RMSE for both, then the
-median ratio of the RMSEs. Runs go to OUT/<folder name>/<mm|tissue>/seed<k> and are kept (a rerun resumes).
+derived MCAPs need not exist any more (a colon seed's are about 4 GB, and are often deleted to save disk):
+the cache is all training reads. Prints per folder and training seed the pooled R², RMSE and each view's
+RMSE for both, then the median ratio of the RMSEs. Runs go to OUT/<folder name>/<mm|tissue>/seed<k> and
+are kept (a rerun resumes).
 
     python bench/study_radius.py --out /tmp/radius /data/sweep17/colon_131/results [MORE ...] [--seeds 0 1 2]
 """
