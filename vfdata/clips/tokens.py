@@ -317,7 +317,9 @@ def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     estimator share: tracks (F, N, 3) mm in the object frame + visibility (F, N) -> (tokens (F, N', C),
     valid (F, N'), side). The recording's first frame, `first` = (points (N, 3), visible (N,)) (default:
     these tracks' first), fixes the mirror to the canonical side (`recording_side`: the side is -1 when the
-    points were mirrored; `mirror_y(force, side)` turns a force back) and the top/bottom subset. A stream
+    points were mirrored; `mirror_y(force, side)` turns a force back), the top/bottom subset and, with
+    `spec.radius` tissue, the radius r0 is counted in (`tissue_radius`; a first frame that sees nothing
+    falls back to the median r0 of the frames given, which a stream and a recording then see apart). A stream
     that holds only its last frames passes `first`, `reference_mm` (each point's first visible position,
     unmirrored), `fps`, `period_ns` and `average_mm` (the relaxation's averages of its frames, unmirrored)
     (`point_tokens`) from its whole history."""
