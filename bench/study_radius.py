@@ -24,6 +24,7 @@ import numpy as np
 
 import vfdata.clips.dataset as clip_dataset
 from vfdata.clips.decode import Decoded
+from vfdata.clips.tokens import tissue_radius
 from vfdata.errors import InputError
 from vfdata.threads import set_threads
 from vfmodels.evaluation.metrics import force_metrics
@@ -48,11 +49,13 @@ def cached_tokens(cache: Path, recording: str) -> dict[str, np.ndarray]:
 
 
 def in_tissue_radii(tokens: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Tokens (F, N, 12) with r0 over the median r0 of the first frame's valid points."""
-    r0 = tokens[..., 2]
-    radius = np.median(r0[0][valid[0]]) if valid[0].any() else np.median(r0[valid])
+    """Tokens (F, N, 12) with r0 over the tissue's radius, as `track_tokens` divides it: `tissue_radius` of
+    the first frame's valid points (their place (r0 cos th0, r0 sin th0) read back from the tokens), else
+    the median r0 of every valid token."""
+    place = tokens[0][:, [0, 1]] * tokens[0][:, [2]]
+    radius = tissue_radius(np.column_stack([place, np.zeros(len(place))]), valid[0])
     out = tokens.copy()
-    out[..., 2] = np.where(valid, r0 / radius, 0.0)
+    out[..., 2] /= radius or float(np.median(tokens[..., 2][valid]))
     return out
 
 

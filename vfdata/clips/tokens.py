@@ -347,8 +347,8 @@ def tissue_radius(points_object_mm: np.ndarray, visible: np.ndarray) -> float | 
     the bed or the instrument lie two or three radii out."""
     points = np.asarray(points_object_mm, dtype=np.float64)[np.asarray(visible, dtype=bool)]
     points = points[np.isfinite(points).all(axis=1)]
-    r = np.hypot(points[:, 0], points[:, 1])
-    return float(np.median(r)) if len(r) and np.median(r) > 0 else None
+    radius = float(np.median(np.hypot(points[:, 0], points[:, 1]))) if len(points) else 0.0
+    return radius if radius > 0 else None
 
 
 def sample_cloud(points_mm: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
