@@ -159,13 +159,16 @@ def test_point_tokens_are_positions_and_central_difference_velocities():
 
 def test_the_token_recipe_of_a_stream_is_the_recordings():
     """`track_tokens` on the last three frames of a stream, given the first frame and each point's first
-    position, gives the whole recording's tokens of the middle frame (mirror, subset, displacements)."""
+    position, gives the whole recording's tokens of the middle frame (mirror, subset, displacements, the place
+    along Z from the free end, when a point first seen later lies beyond it)."""
     points, visible = _tracks(frames=12)
     points = points - np.array([0.0, 30.0, 0.0])  # the y < 0 flank: mirrored with canonical_side
     visible[:3, :4] = False
     times = np.arange(12) * 33_333_333
+    points[3:, 5, 2] = points[:, :, 2].max() + 20.0  # first seen on frame 3, beyond the first frame's free end
+    visible[:3, 5], visible[3:, 5] = False, True
     for spec in (ClipSpec(canonical_side=True, features="disp_vel"), ClipSpec(subset="top_bottom_20"),
-                 ClipSpec(features="polar_disp_vel", radius="tissue")):
+                 ClipSpec(features="polar_disp_vel", radius="tissue"), ClipSpec(features="polar_z_disp_vel")):
         whole, whole_valid, side = track_tokens(spec, points, visible, times)
         assert side == (-1.0 if spec.canonical_side else 1.0)
         for t in range(1, 11):

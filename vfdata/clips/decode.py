@@ -27,7 +27,7 @@ from vfdata.manifest import ManifestEntry
 from vfdata.recording import Recording, layout
 from vfdata.recording.derived import DerivedRecording
 
-CACHE_VERSION = 3  # bump when the decoded arrays change for the same spec
+CACHE_VERSION = 4  # bump when the decoded arrays change for the same spec
 
 
 @dataclass

@@ -10,6 +10,7 @@ from vfdata.clips.spec import FEATURE_CHANNELS, TILTABLE_FEATURES, ClipSpec
 from vfdata.errors import VisionForceError
 
 GAP_FACTOR = 1.5  # a frame interval longer than this many nominal periods is a gap
+TIP_PERCENTILE = 98.0  # the free end's z among a frame's points (`tissue_tip`)
 TOP_BOTTOM_FRACTION = 0.2
 DEFAULT_FPS = 30.0
 # The relaxation's time constant (s). A viscoelastic tissue's force follows where it has been over the last
@@ -131,7 +132,7 @@ def displacement_averages(displacement_mm: np.ndarray, ok: np.ndarray, fps: floa
 
 def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[int, int]], fps: float,
                    features: str, reference_mm: np.ndarray | None = None,
-                   average_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   average_mm: np.ndarray | None = None, tip_mm: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tokens (F, N, C) float32 and valid (F, N) (`ClipSpec.features`: C = 3 per 3-vector). Invalid
     or non-finite points are zeroed and marked invalid; velocities of points next to an invalid
     sample are too. Displacements are from `reference_mm` (N, 3), by default each point's first valid
@@ -153,7 +154,7 @@ def point_features(points_mm: np.ndarray, valid: np.ndarray, runs: list[tuple[in
         elif features.startswith("polar"):
             parts.append(np.broadcast_to(polar_place(ref), p.shape))
             if features.startswith("polar_z"):
-                parts.append(np.broadcast_to(along_from_tip(ref, has_ref), p.shape))
+                parts.append(np.broadcast_to(along_from_tip(ref, has_ref, tip_mm), p.shape))
         parts.append(p - ref)
         if "relax" in features:
             if average_mm is None:
@@ -183,18 +184,26 @@ def polar_place(reference_mm: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(th), np.sin(th), r], axis=-1)
 
 
-def along_from_tip(reference_mm: np.ndarray, valid: np.ndarray, tip_percentile: float = 98.0) -> np.ndarray:
+def along_from_tip(reference_mm: np.ndarray, valid: np.ndarray, tip_mm: float | None = None) -> np.ndarray:
     """(N, 3) object-frame positions -> (N, 3) (0, 0, z - z_tip mm): each point's place along Z counted
-    from the tissue's free end (the `tip_percentile` of the valid points' z), not from the origin. A view
-    that cuts the clamped end off moves the origin (18-21 mm on glove_016 and colon_006) but not the
+    from the tissue's free end, `tip_mm` (default: `tissue_tip` of the valid points), not from the origin.
+    A view that cuts the clamped end off moves the origin (18-21 mm on glove_016 and colon_006) but not the
     tip; a lever arm and an axial strain need a place along Z, and any fixed reference serves a strain.
     A 3-vector with zero x, y, so turns about Z and the mirror leave it alone."""
     ref = np.asarray(reference_mm, dtype=np.float64)
-    z = ref[np.asarray(valid, dtype=bool), 2]
-    tip = float(np.percentile(z, tip_percentile)) if len(z) else 0.0
+    if tip_mm is None:
+        tip_mm = tissue_tip(ref, valid)
     out = np.zeros_like(ref)
-    out[:, 2] = ref[:, 2] - tip
+    out[:, 2] = ref[:, 2] - (tip_mm or 0.0)
     return out
+
+
+def tissue_tip(points_object_mm: np.ndarray, visible: np.ndarray, percentile: float = TIP_PERCENTILE) -> float | None:
+    """z (mm) of the tissue's free end on one frame: the `percentile` of its visible points' z, object
+    frame (a high percentile, not the maximum, so one stray point does not move it); None if none is seen."""
+    p = np.asarray(points_object_mm, dtype=np.float64)
+    ok = np.asarray(visible, dtype=bool) & np.isfinite(p).all(axis=-1)
+    return float(np.percentile(p[ok, 2], percentile)) if ok.any() else None
 
 
 def mirror_tokens(tokens: np.ndarray) -> np.ndarray:
@@ -277,7 +286,8 @@ def recording_side(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.nda
 def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
                  object_frame: tuple[np.ndarray, np.ndarray] | None = None, keep: np.ndarray | None = None,
                  fps: float | None = None, reference_mm: np.ndarray | None = None,
-                 period_ns: float | None = None, average_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 period_ns: float | None = None, average_mm: np.ndarray | None = None,
+                 tip_mm: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Tracks (F, N, 3) in the object frame (mm, already mirrored by the caller when it should be) +
     visibility (F, N) -> tokens (F, N', C) float32 and valid (F, N') as `spec` says. `times_ns` cuts
     velocities at gaps (None: one gap-free run); the camera frame needs `object_frame` (rotation (3, 3)
@@ -285,7 +295,8 @@ def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     chosen on the first frame); `reference_mm` (N, 3) the positions displacements start from (default:
     each point's first valid position in these frames; a stream passes the recording's first frame);
     `period_ns` the nominal frame interval gaps are judged against (`segments`); `average_mm` (F, N, 3) the
-    relaxation's averages of the displacements, in the object frame (`point_features`)."""
+    relaxation's averages of the displacements, in the object frame; `tip_mm` the free end's z the `polar_z`
+    place is counted from (`point_features`)."""
     points = np.asarray(points_object_mm, dtype=np.float64)
     visible = np.asarray(visible, dtype=bool)
     reference = None if reference_mm is None else np.asarray(reference_mm, dtype=np.float64)
@@ -305,7 +316,7 @@ def point_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
         average = None if average is None else np.asarray(average) @ np.asarray(rotation).T  # displacements turn
     runs = segments(times_ns, period_ns=period_ns) if times_ns is not None else [(0, len(points))]
     rate = fps or spec.fps or (frame_rate(times_ns) if times_ns is not None else DEFAULT_FPS)
-    return point_features(points, visible, runs, rate, spec.features, reference, average)
+    return point_features(points, visible, runs, rate, spec.features, reference, average, tip_mm)
 
 
 def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarray, times_ns: np.ndarray | None = None,
@@ -317,7 +328,8 @@ def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     estimator share: tracks (F, N, 3) mm in the object frame + visibility (F, N) -> (tokens (F, N', C),
     valid (F, N'), side). The recording's first frame, `first` = (points (N, 3), visible (N,)) (default:
     these tracks' first), fixes the mirror to the canonical side (`recording_side`: the side is -1 when the
-    points were mirrored; `mirror_y(force, side)` turns a force back), the top/bottom subset and, with
+    points were mirrored; `mirror_y(force, side)` turns a force back), the top/bottom subset, the free end
+    the `polar_z` place is counted from (`tissue_tip`; if the first frame sees nothing, the references') and, with
     `spec.radius` tissue, the radius r0 is counted in (`tissue_radius`; a first frame that sees nothing
     falls back to the median r0 of the frames given, which a stream and a recording then see apart). A stream
     that holds only its last frames passes `first`, `reference_mm` (each point's first visible position,
@@ -331,8 +343,11 @@ def track_tokens(spec: ClipSpec, points_object_mm: np.ndarray, visible: np.ndarr
     keep = top_bottom(first[0]) if spec.subset == "top_bottom_20" and first is not None else None
     reference = None if reference_mm is None else mirror_y(np.asarray(reference_mm, dtype=np.float64), side)
     average = None if average_mm is None else mirror_y(np.asarray(average_mm, dtype=np.float64), side)
+    # the free end as the first frame sees it, as the radius: a point first seen later must not move it,
+    # or a recording and a stream of it would count the place along Z from different ends
+    tip = tissue_tip(*first) if first is not None and spec.frame == "object" else None
     tokens, valid = point_tokens(spec, mirror_y(points, side), visible, times_ns, object_frame, keep, fps=fps,
-                                 reference_mm=reference, period_ns=period_ns, average_mm=average)
+                                 reference_mm=reference, period_ns=period_ns, average_mm=average, tip_mm=tip)
     if spec.radius == "tissue":
         radius = tissue_radius(*first) if first is not None else None
         if radius is None and valid.any():  # nothing seen on the first frame: the radius these frames show
