@@ -99,10 +99,21 @@ def test_a_taper_alone_against_two_sure_cues_is_its_own_doubt():
     assert not outvoted.low_end_clamped and outvoted.doubtful and outvoted.doubt == "taper"
     # one sure cue for the verdict is not two: the end stays in doubt
     assert decide([Cue("taper", 1, 5.0), Cue("fixture", -1, 12.3), Cue("motion", -1, 2.0)]).doubt == "end"
-    # two sure cues against the taper whose sum barely clears it: no cue is sure of the end
-    assert decide([Cue("taper", 1, 10.0), Cue("fixture", -1, 3.0), Cue("motion", -1, 9.0)]).doubt == "end"
+    # a sure taper with a weak fixture and a sure motion against it: the taper is muted, the end theirs
+    assert decide([Cue("taper", 1, 10.0), Cue("fixture", -1, 3.0), Cue("motion", -1, 9.0)]).doubt == "taper"
     # the fixture alone against the taper and the motion: not the taper's doubt
     assert decide([Cue("taper", 1, 5.0), Cue("fixture", -1, 12.3), Cue("motion", 1, 9.6)]).doubt == "end"
+
+
+def test_a_sure_motion_outweighs_a_sure_taper_and_the_end_stays_in_doubt():
+    """Colon 138's `colon_008` (fresh sweep, 201 degrees): the instrument's shaft along the tube made a taper of
+    strength 10.4 one way, the grasper's motion 8.2 the other, the fixture unseen. The summed weights took the
+    taper's end, and the frame came out 162 degrees off; the motion's end was the clamp's."""
+    verdict = decide([Cue("taper", 1, 10.38), Cue("fixture", 0, 0.0), Cue("motion", -1, 8.23)])
+    assert not verdict.low_end_clamped and verdict.doubtful and verdict.doubt == "end"
+    # a taper that is not sure keeps its say (glove 218's glove_018: the motion 5.3 was wrong there; flagged)
+    weak = decide([Cue("taper", -1, 2.68), Cue("fixture", 0, 0.0), Cue("motion", 1, 5.3)])
+    assert weak.low_end_clamped and weak.doubtful and weak.margin == pytest.approx(2.62)
 
 
 def test_the_scan_follows_the_moving_half_and_finds_the_end_that_stays():

@@ -92,8 +92,15 @@ class EndDecision:
 
 def decide(cues: list[Cue] | tuple[Cue, ...]) -> EndDecision:
     """The end the cues put the clamp at, by their summed weights (ties: the low end, as the taper's sign
-    convention has it when it has no say)."""
-    total = sum(c.weight for c in cues)
+    convention has it when it has no say). A sure taper against a sure motion has no say: an instrument
+    lying along the tube fakes a taper, and nothing fakes the clamped end's stillness. On the fresh sweeps'
+    12 recordings where the two were sure and disagreed, the motion's end was right all 12 times; on colon
+    138's `colon_008` (taper 10.4, motion 8.2) the sum took the taper's, reversed (docs/results.md, "Which
+    cue was right"). The recording stays doubtful (the taper is still a sure cue against the verdict), as
+    it must: a sure motion can be wrong too (glove 218's `glove_018`, 5.3, against a weak taper)."""
+    sure = {c.name: c for c in cues if c.weight != 0 and c.strength >= STRONG}
+    muted = "taper" in sure and "motion" in sure and (sure["taper"].weight > 0) != (sure["motion"].weight > 0)
+    total = sum(c.weight for c in cues if not (muted and c.name == "taper"))
     low = total >= 0
     against = [c for c in cues if c.weight != 0 and (c.weight > 0) != low and c.strength >= STRONG]
     return EndDecision(bool(low), float(abs(total)), not against, tuple(cues))
