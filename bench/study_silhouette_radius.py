@@ -19,12 +19,19 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-R0, Z_FROM_TIP, POLAR_Z_CHANNELS = 2, 5, 12  # polar_z_disp_vel: (cos, sin, r0), (0, 0, z - z_tip), disp, vel
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from study_radius import cached_tokens  # noqa: E402
+
+from vfdata.errors import InputError  # noqa: E402
+
+R0, Z_FROM_TIP = 2, 5  # polar_z_disp_vel: (cos, sin, r0), (0, 0, z - z_tip), displacement, velocity
 
 
 def silhouette_radius(xy_mm: np.ndarray, z_mm: np.ndarray, slice_mm: float = 15.0, low: float = 10.0) -> float:
@@ -43,13 +50,14 @@ def silhouette_radius(xy_mm: np.ndarray, z_mm: np.ndarray, slice_mm: float = 15.
     return float(np.median(widths)) / 2 if widths else float("nan")
 
 
-def first_frame_points(cache: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(xy mm, z mm from the tip, r0 mm) of the first frame's valid points of a cached recording."""
-    with np.load(cache) as z:
-        tokens, valid = z["inputs"], z["valid"]
-    if tokens.shape[-1] != POLAR_Z_CHANNELS:
+def first_frame_points(cache: Path, recording: str) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(xy mm, z mm from the tip, r0 mm) of the first frame's valid points of a cached recording (None: no
+    cache of its r0-in-mm tokens; `study_radius.cached_tokens` finds and checks it)."""
+    try:
+        arrays = cached_tokens(cache, recording)
+    except InputError:
         return None
-    first = tokens[0][valid[0]].astype(np.float64)
+    first = arrays["inputs"][0][arrays["valid"][0]].astype(np.float64)
     r0 = first[:, R0]
     return np.stack([r0 * first[:, 0], r0 * first[:, 1]], axis=1), first[:, Z_FROM_TIP], r0
 
@@ -64,8 +72,7 @@ def main() -> None:
         manifest = yaml.safe_load(next((folder / "data").glob("*.manifest.yaml")).read_text())
         views = {r["id"]: r for r in manifest["recordings"]}
         for recording in views:
-            caches = sorted((folder / "results" / "cache").glob(f"{recording}-*.npz"))
-            points = next((p for p in map(first_frame_points, caches) if p is not None), None)
+            points = first_frame_points(folder / "results" / "cache", recording)
             if points is None:
                 continue
             xy, z, r0 = points
